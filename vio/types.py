@@ -41,7 +41,8 @@ class ImuSample:
     Attributes:
         t_s: Timestamp (s) on the IMU clock.
         gyro_B_rad_s: Angular rate of B w.r.t. W, in B (rad/s), shape (3,).
-        accel_B_m_s2: Specific force ``R_WB^T (a_W - g_W)`` in B (m/s^2), shape (3,); +9.81 z when level and still.
+        accel_B_m_s2: Specific force ``R_WB^T (a_W - g_W)`` in B (m/s^2), shape (3,); reads +9.81 z
+            when level and still.
         saturated: True if any axis was clipped at the sensor's range.
     """
 
