@@ -39,20 +39,21 @@ def exp_so3(phi: np.ndarray) -> np.ndarray:
 
 def log_so3(R: np.ndarray) -> np.ndarray:
     """Rotation matrix, shape (3, 3) -> rotation vector (rad), shape (3,), angle in [0, pi]."""
-    cos_angle = np.clip((np.trace(R) - 1.0) * 0.5, -1.0, 1.0)
-    angle = float(np.arccos(cos_angle))
+    sin_axis = vee(0.5 * (R - R.T))  # sin(angle) * axis
+    cos_angle = float(np.clip((np.trace(R) - 1.0) * 0.5, -1.0, 1.0))
+    angle = float(np.arctan2(np.linalg.norm(sin_axis), cos_angle))
     if angle < 1e-6:
-        return vee(R - R.T) * (1.0 + angle**2 / 6.0)
+        return sin_axis * (1.0 + angle**2 / 6.0)
     if np.pi - angle < 1e-4:
-        # Near pi: read the axis from the symmetric part, R = 2 a a^T - I (+ O(eps)).
-        sym = (R + np.eye(3)) * 0.5
+        # Near pi: read the axis from the symmetric part, (R + R^T)/2 = cos I + (1 - cos) a a^T.
+        sym = (0.5 * (R + R.T) - cos_angle * np.eye(3)) / (1.0 - cos_angle)
         col = int(np.argmax(np.diag(sym)))
         axis = sym[:, col] / np.sqrt(max(sym[col, col], 1e-300))
         axis /= np.linalg.norm(axis)
-        if np.dot(vee(R - R.T), axis) < 0.0:
+        if np.dot(sin_axis, axis) < 0.0:
             axis = -axis
         return axis * angle
-    return vee(R - R.T) * (angle / np.sin(angle))
+    return sin_axis * (angle / np.sin(angle))
 
 
 def right_jacobian_so3(phi: np.ndarray) -> np.ndarray:
