@@ -1,0 +1,420 @@
+"""Setpoint generators: smooth flat-output trajectories sampled by time.
+
+Every generator has ``sample(t_s) -> FlatOutput`` (time relative to its own start, seconds) and ``duration_s``
+(``inf`` when it never ends). Derivatives (velocity, acceleration, jerk, yaw rate) are analytic.
+
+- :class:`HoverPoint`: hold a position and heading.
+- :class:`Waypoints`: rest-to-rest minimum-jerk segments (Flash and Hogan, J. Neurosci. 1985: the quintic
+  ``10 s^3 - 15 s^4 + 6 s^5``) between points, timed by an average speed or by given segment times.
+- :class:`Takeoff`: a minimum-jerk climb from the ground to an altitude.
+- :class:`FigureEight`: a lemniscate of Gerono, ``x = a sin(theta)``, ``y = b sin(2 theta)``, whose phase rate
+  ramps up (and, for a finite number of laps, down) smoothly so it starts and ends at rest.
+- :class:`ExcitationManeuver`: small sinusoids in x, y, z and yaw under a ``sin^2`` window, to make the
+  estimator's states observable (the lesson's excitation requirement), starting and ending at rest.
+- :class:`Sequence`: chain the above, each one after the previous ends.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from viotb.controllers.types import FlatOutput
+
+_CONTINUITY_TOL_M = 1e-3
+"""Sequence items must join within this distance (m)."""
+
+
+@runtime_checkable
+class Setpoint(Protocol):
+    """A time-parametrised flat-output trajectory."""
+
+    @property
+    def duration_s(self) -> float:
+        """Length (s); ``inf`` for setpoints that never end."""
+        ...
+
+    def sample(self, t_s: float) -> FlatOutput:
+        """Flat output at ``t_s`` seconds after the start (clamped to ``[0, duration_s]``)."""
+        ...
+
+
+def _vector(owner: str, name: str, value: object, size: int = 3) -> np.ndarray:
+    """Read-only float vector of the given size, or a ValueError naming the field."""
+    arr = np.array(value, dtype=float)
+    if arr.shape != (size,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{owner}.{name}: expected {size} finite values, got {np.asarray(value)!r}")
+    arr.setflags(write=False)
+    return arr
+
+
+def _positive(owner: str, name: str, value: float) -> float:
+    """``value`` as a float if positive and finite, else a ValueError naming the field."""
+    if not (np.isfinite(value) and value > 0.0):
+        raise ValueError(f"{owner}.{name} must be positive and finite, got {value!r}")
+    return float(value)
+
+
+def min_jerk_profile(tau: float) -> tuple[float, float, float, float]:
+    """Rest-to-rest minimum-jerk blend ``s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5`` and its 3 derivatives.
+
+    Args:
+        tau: Normalised time, clamped to [0, 1].
+
+    Returns:
+        ``(s, ds/dtau, d2s/dtau2, d3s/dtau3)``; the first two derivatives vanish at both ends; the third is
+        zero outside ``[0, 1)`` (at rest before the start and from the end on).
+    """
+    t = min(max(tau, 0.0), 1.0)
+    s = t**3 * (10.0 - 15.0 * t + 6.0 * t * t)
+    ds = 30.0 * t * t * (1.0 - t) ** 2
+    d2s = 60.0 * t * (1.0 - t) * (1.0 - 2.0 * t)
+    d3s = 60.0 * (1.0 - 6.0 * t + 6.0 * t * t) if 0.0 <= tau < 1.0 else 0.0
+    return s, ds, d2s, d3s
+
+
+def _min_jerk_segment(
+    p0: np.ndarray, p1: np.ndarray, yaw0: float, yaw1: float, duration_s: float, t_s: float
+) -> FlatOutput:
+    """Sample a rest-to-rest minimum-jerk move from ``(p0, yaw0)`` to ``(p1, yaw1)`` at ``t_s``."""
+    s, ds, d2s, d3s = min_jerk_profile(t_s / duration_s)
+    dp, dyaw, T = p1 - p0, yaw1 - yaw0, duration_s
+    return FlatOutput(
+        p_W=p0 + s * dp,
+        v_W=dp * ds / T,
+        a_W=dp * d2s / T**2,
+        j_W=dp * d3s / T**3,
+        yaw_rad=yaw0 + s * dyaw,
+        yaw_rate_rad_s=dyaw * ds / T,
+    )
+
+
+@dataclass(frozen=True)
+class HoverPoint:
+    """Hold position ``p_W`` (m, shape (3,)) and heading ``yaw_rad`` (rad) forever."""
+
+    p_W: np.ndarray
+    yaw_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        """Validate the position."""
+        object.__setattr__(self, "p_W", _vector("HoverPoint", "p_W", self.p_W))
+
+    @property
+    def duration_s(self) -> float:
+        """Never ends: ``inf``."""
+        return math.inf
+
+    def sample(self, t_s: float) -> FlatOutput:
+        """The hover point, at rest."""
+        return FlatOutput(p_W=self.p_W, yaw_rad=self.yaw_rad)
+
+
+class Waypoints:
+    """Rest-to-rest minimum-jerk segments through waypoints; holds the last point after the end.
+
+    Args:
+        points_W_m: Waypoints (m), shape (N, 3), N >= 2.
+        yaws_rad: Heading at each waypoint (rad), shape (N,); default 0. Blended with the same profile
+            (no wrapping: give unwrapped angles).
+        speed_m_s: Average speed (m/s) that sets each segment's time as ``length / speed`` (peak speed is
+            1.875 times that); used when ``segment_times_s`` is not given.
+        segment_times_s: Duration of each segment (s), shape (N - 1,).
+        min_segment_s: Floor on a segment's duration when timed by speed (s), e.g. for a pure yaw turn.
+
+    Raises:
+        ValueError: Bad shapes, non-positive speed or durations, or neither timing given.
+    """
+
+    def __init__(
+        self,
+        points_W_m: np.ndarray,
+        yaws_rad: np.ndarray | None = None,
+        speed_m_s: float | None = None,
+        segment_times_s: np.ndarray | None = None,
+        min_segment_s: float = 1.0,
+    ) -> None:
+        """Validate and store the waypoints and the segment start times."""
+        points = np.array(points_W_m, dtype=float)
+        if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 2 or not np.all(np.isfinite(points)):
+            raise ValueError(f"Waypoints.points_W_m: expected shape (N >= 2, 3) finite, got {points.shape}")
+        n_seg = points.shape[0] - 1
+        yaws = np.zeros(n_seg + 1) if yaws_rad is None else np.array(yaws_rad, dtype=float)
+        if yaws.shape != (n_seg + 1,) or not np.all(np.isfinite(yaws)):
+            raise ValueError(f"Waypoints.yaws_rad: expected shape ({n_seg + 1},), got {yaws.shape}")
+        if segment_times_s is not None:
+            times = np.array(segment_times_s, dtype=float)
+            if times.shape != (n_seg,) or not np.all(np.isfinite(times)) or np.any(times <= 0.0):
+                raise ValueError(
+                    f"Waypoints.segment_times_s: expected {n_seg} positive values, "
+                    f"got {np.asarray(segment_times_s)!r}"
+                )
+        elif speed_m_s is not None:
+            speed = _positive("Waypoints", "speed_m_s", speed_m_s)
+            lengths = np.linalg.norm(np.diff(points, axis=0), axis=1)
+            times = np.maximum(lengths / speed, _positive("Waypoints", "min_segment_s", min_segment_s))
+        else:
+            raise ValueError("Waypoints: give speed_m_s or segment_times_s")
+        self._points = points
+        self._yaws = yaws
+        self._times = times
+        self._starts = np.concatenate([[0.0], np.cumsum(times)])
+
+    @property
+    def duration_s(self) -> float:
+        """Total time of all segments (s)."""
+        return float(self._starts[-1])
+
+    @property
+    def segment_times_s(self) -> np.ndarray:
+        """Duration of each segment (s), shape (N - 1,)."""
+        return self._times.copy()
+
+    def sample(self, t_s: float) -> FlatOutput:
+        """Flat output at ``t_s`` (s); before 0 the first point, after the end the last point, at rest."""
+        t = min(max(float(t_s), 0.0), self.duration_s)
+        k = int(np.clip(np.searchsorted(self._starts, t, side="right") - 1, 0, len(self._times) - 1))
+        return _min_jerk_segment(
+            self._points[k],
+            self._points[k + 1],
+            float(self._yaws[k]),
+            float(self._yaws[k + 1]),
+            float(self._times[k]),
+            t - float(self._starts[k]),
+        )
+
+
+class Takeoff(Waypoints):
+    """Climb straight up from ``start_W_m`` (m, shape (3,)) to ``altitude_m`` (m) in ``duration_s`` (s).
+
+    A single minimum-jerk segment at constant heading ``yaw_rad``; it starts and ends at rest.
+    """
+
+    def __init__(
+        self, start_W_m: np.ndarray, altitude_m: float, duration_s: float = 3.0, yaw_rad: float = 0.0
+    ):
+        """Build the climb segment."""
+        start = _vector("Takeoff", "start_W_m", start_W_m)
+        if not np.isfinite(altitude_m):
+            raise ValueError(f"Takeoff.altitude_m must be finite, got {altitude_m!r}")
+        end = np.array([start[0], start[1], float(altitude_m)])
+        super().__init__(
+            np.vstack([start, end]),
+            yaws_rad=np.array([yaw_rad, yaw_rad]),
+            segment_times_s=np.array([_positive("Takeoff", "duration_s", duration_s)]),
+        )
+
+
+def _phase_ramp(t_s: float, ramp_s: float) -> tuple[float, float, float, float]:
+    """Time warp whose rate rises from 0 to 1 over ``ramp_s`` by the min-jerk blend, and its derivatives.
+
+    ``w(t) = ramp_s * (2.5 tau^4 - 3 tau^5 + tau^6)`` for ``tau = t / ramp_s < 1`` (the blend's integral),
+    ``w(t) = t - ramp_s / 2`` after. Returns ``(w, dw/dt, d2w/dt2, d3w/dt3)``.
+    """
+    if t_s <= 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    if t_s >= ramp_s:
+        return t_s - 0.5 * ramp_s, 1.0, 0.0, 0.0
+    tau = t_s / ramp_s
+    s, ds, d2s, _ = min_jerk_profile(tau)
+    return ramp_s * tau**4 * (2.5 - 3.0 * tau + tau * tau), s, ds / ramp_s, d2s / ramp_s**2
+
+
+@dataclass(frozen=True)
+class FigureEight:
+    """Lemniscate of Gerono in a horizontal plane, flown from and back to its centre.
+
+    ``p(t) = (cx + a sin(theta), cy + b sin(2 theta), altitude)`` with ``theta = 2 pi w(t) / period``, where
+    the warped time ``w`` ramps its rate smoothly from 0 to 1 over ``ramp_s`` (and back down at the end when
+    ``laps`` is finite), so the vehicle starts (and stops) at the centre at rest. Heading is constant.
+
+    Attributes:
+        center_xy_m: Centre (m), shape (2,).
+        size_m: Half-widths ``(a, b)`` (m) along x and y, shape (2,).
+        period_s: Time of one lap at full rate (s).
+        altitude_m: Height (m).
+        ramp_s: Duration of the rate ramp (s).
+        laps: Number of laps, or ``None`` to fly forever; the total phase is exactly ``laps`` turns.
+        yaw_rad: Constant heading (rad).
+    """
+
+    center_xy_m: np.ndarray
+    size_m: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.5]))
+    period_s: float = 8.0
+    altitude_m: float = 1.0
+    ramp_s: float = 2.0
+    laps: int | None = None
+    yaw_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        """Validate; a finite number of laps must be long enough for both ramps."""
+        object.__setattr__(self, "center_xy_m", _vector("FigureEight", "center_xy_m", self.center_xy_m, 2))
+        object.__setattr__(self, "size_m", _vector("FigureEight", "size_m", self.size_m, 2))
+        _positive("FigureEight", "period_s", self.period_s)
+        _positive("FigureEight", "ramp_s", self.ramp_s)
+        if self.laps is not None and (int(self.laps) != self.laps or self.laps * self.period_s < self.ramp_s):
+            raise ValueError(
+                f"FigureEight.laps must be a whole number with laps * period_s >= ramp_s, got {self.laps!r}"
+            )
+
+    @property
+    def duration_s(self) -> float:
+        """``laps * period_s + ramp_s`` (s), or ``inf``."""
+        return math.inf if self.laps is None else self.laps * self.period_s + self.ramp_s
+
+    def _warp(self, t_s: float) -> tuple[float, float, float, float]:
+        """Warped time and its three derivatives, with the ramp-down mirrored at the end."""
+        if self.laps is None or t_s <= 0.5 * self.duration_s:
+            return _phase_ramp(t_s, self.ramp_s)
+        w, dw, d2w, d3w = _phase_ramp(self.duration_s - t_s, self.ramp_s)
+        return self.laps * self.period_s - w, dw, -d2w, d3w
+
+    def sample(self, t_s: float) -> FlatOutput:
+        """Flat output at ``t_s`` (s), by the chain rule through the warped phase."""
+        t = min(max(float(t_s), 0.0), self.duration_s)
+        w, dw, d2w, d3w = self._warp(t)
+        omega = 2.0 * math.pi / self.period_s
+        th, th1, th2, th3 = omega * w, omega * dw, omega * d2w, omega * d3w
+        # f(theta) = (a sin theta, b sin 2 theta) and its theta-derivatives f', f'', f'''.
+        a, b = self.size_m
+        f = np.array([a * math.sin(th), b * math.sin(2 * th)])
+        f1 = np.array([a * math.cos(th), 2 * b * math.cos(2 * th)])
+        f2 = np.array([-a * math.sin(th), -4 * b * math.sin(2 * th)])
+        f3 = np.array([-a * math.cos(th), -8 * b * math.cos(2 * th)])
+        # d/dt: v = f' th1; a = f'' th1^2 + f' th2; j = f''' th1^3 + 3 f'' th1 th2 + f' th3.
+        vel = f1 * th1
+        acc = f2 * th1**2 + f1 * th2
+        jerk = f3 * th1**3 + 3.0 * f2 * th1 * th2 + f1 * th3
+        return FlatOutput(
+            p_W=np.array([self.center_xy_m[0] + f[0], self.center_xy_m[1] + f[1], self.altitude_m]),
+            v_W=np.append(vel, 0.0),
+            a_W=np.append(acc, 0.0),
+            j_W=np.append(jerk, 0.0),
+            yaw_rad=self.yaw_rad,
+        )
+
+
+@dataclass(frozen=True)
+class ExcitationManeuver:
+    """Small smooth oscillations in x, y, z and yaw around a point, starting and ending at rest.
+
+    Each channel is ``A_k h(t) sin(2 pi f_k t)`` with the window ``h(t) = sin^2(pi t / duration_s)``, whose
+    value and slope vanish at both ends. The defaults give peak accelerations of about 1-1.5 m/s^2 and yaw
+    rates near 1 rad/s: enough to excite the accelerometer and gyro axes for bias and scale observability.
+
+    Attributes:
+        center_W_m: Point to oscillate about (m), shape (3,).
+        amplitude_m: Peak displacement per axis (m), shape (3,).
+        frequency_hz: Oscillation frequency per axis (Hz), shape (3,); distinct values decorrelate the axes.
+        yaw_center_rad: Mean heading (rad).
+        yaw_amplitude_rad: Peak heading swing (rad).
+        yaw_frequency_hz: Heading oscillation frequency (Hz).
+        duration_s: Length of the manoeuvre (s).
+    """
+
+    center_W_m: np.ndarray
+    amplitude_m: np.ndarray = field(default_factory=lambda: np.array([0.15, 0.15, 0.08]))
+    frequency_hz: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.7, 0.9]))
+    yaw_center_rad: float = 0.0
+    yaw_amplitude_rad: float = 0.4
+    yaw_frequency_hz: float = 0.4
+    duration_s: float = 6.0
+
+    def __post_init__(self) -> None:
+        """Validate fields."""
+        for name in ("center_W_m", "amplitude_m", "frequency_hz"):
+            object.__setattr__(self, name, _vector("ExcitationManeuver", name, getattr(self, name)))
+        if np.any(self.frequency_hz <= 0.0):
+            raise ValueError(
+                f"ExcitationManeuver.frequency_hz must be positive, got {self.frequency_hz.tolist()}"
+            )
+        _positive("ExcitationManeuver", "yaw_frequency_hz", self.yaw_frequency_hz)
+        _positive("ExcitationManeuver", "duration_s", self.duration_s)
+
+    def _window(self, t: float) -> np.ndarray:
+        """``h = sin^2(pi t / T) = (1 - cos(2 pi t / T)) / 2`` and its 3 derivatives, shape (4,)."""
+        c = 2.0 * math.pi / self.duration_s
+        return np.array(
+            [
+                0.5 * (1.0 - math.cos(c * t)),
+                0.5 * c * math.sin(c * t),
+                0.5 * c**2 * math.cos(c * t),
+                -0.5 * c**3 * math.sin(c * t),
+            ]
+        )
+
+    @staticmethod
+    def _sine(amplitude: np.ndarray, frequency_hz: np.ndarray, t: float) -> np.ndarray:
+        """``A sin(2 pi f t)`` and its 3 derivatives, shape (4, K)."""
+        w = 2.0 * math.pi * frequency_hz
+        s, c = np.sin(w * t), np.cos(w * t)
+        return amplitude * np.array([s, w * c, -(w**2) * s, -(w**3) * c])
+
+    def sample(self, t_s: float) -> FlatOutput:
+        """Flat output at ``t_s`` (s); Leibniz rule for the windowed sines."""
+        t = min(max(float(t_s), 0.0), self.duration_s)
+        h = self._window(t)[:, None]
+        amplitudes = np.append(self.amplitude_m, self.yaw_amplitude_rad)
+        frequencies = np.append(self.frequency_hz, self.yaw_frequency_hz)
+        g = self._sine(amplitudes, frequencies, t)
+        binomial = ((1,), (1, 1), (1, 2, 1), (1, 3, 3, 1))
+        d = np.array([sum(c * h[k] * g[n - k] for k, c in enumerate(binomial[n])) for n in range(4)])
+        return FlatOutput(
+            p_W=self.center_W_m + d[0, :3],
+            v_W=d[1, :3],
+            a_W=d[2, :3],
+            j_W=d[3, :3],
+            yaw_rad=self.yaw_center_rad + float(d[0, 3]),
+            yaw_rate_rad_s=float(d[1, 3]),
+        )
+
+
+class Sequence:
+    """Setpoints flown one after another; each item's time starts when the previous one ends.
+
+    Args:
+        items: Setpoints; every item but the last needs a finite ``duration_s``. Consecutive items must join
+            in position (end of one = start of the next within 1 mm).
+
+    Raises:
+        ValueError: Empty list, an infinite item before the end, or a position jump between items.
+    """
+
+    def __init__(self, items: Iterable[Setpoint]) -> None:
+        """Validate the chain and precompute start times."""
+        self._items = list(items)
+        if not self._items:
+            raise ValueError("Sequence needs at least one setpoint")
+        starts = [0.0]
+        for k, item in enumerate(self._items[:-1]):
+            if not math.isfinite(item.duration_s):
+                raise ValueError(f"Sequence item {k} ({type(item).__name__}) never ends but is not last")
+            end = item.sample(item.duration_s).p_W
+            start_next = self._items[k + 1].sample(0.0).p_W
+            jump = float(np.linalg.norm(end - start_next))
+            if jump > _CONTINUITY_TOL_M:
+                raise ValueError(
+                    f"Sequence items {k} ({type(item).__name__}) and {k + 1} "
+                    f"({type(self._items[k + 1]).__name__}) are {jump:.3f} m apart: end {end.tolist()}, "
+                    f"start {start_next.tolist()}"
+                )
+            starts.append(starts[-1] + item.duration_s)
+        self._starts = starts
+
+    @property
+    def duration_s(self) -> float:
+        """Sum of the item durations (s); ``inf`` if the last item never ends."""
+        return self._starts[-1] + self._items[-1].duration_s
+
+    @property
+    def start_times_s(self) -> list[float]:
+        """Start time of each item (s)."""
+        return list(self._starts)
+
+    def sample(self, t_s: float) -> FlatOutput:
+        """Flat output of the item active at ``t_s`` (s), in that item's local time."""
+        k = max(0, int(np.searchsorted(self._starts, float(t_s), side="right")) - 1)
+        return self._items[k].sample(float(t_s) - self._starts[k])

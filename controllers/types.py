@@ -1,0 +1,141 @@
+"""What crosses the controller boundary: setpoints in, navigation state in, motor command out.
+
+Frames: ``W`` world (z up), ``B`` body (x forward, y left, z up). Cf. rotorpy
+``controllers/controller_template.py``, with frozen dataclasses in place of string-keyed dicts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+def _vec(owner: str, name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    """Read-only float copy of ``value`` with the given shape, or a ValueError naming the field."""
+    arr = np.array(value, dtype=float)
+    if arr.shape != shape:
+        raise ValueError(f"{owner}.{name}: expected shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{owner}.{name}: non-finite value {arr.tolist()}")
+    arr.setflags(write=False)
+    return arr
+
+
+def _zeros3() -> np.ndarray:
+    return np.zeros(3)
+
+
+@dataclass(frozen=True)
+class FlatOutput:
+    """A point on a differentially flat quadrotor trajectory (Mellinger & Kumar, ICRA 2011).
+
+    Attributes:
+        p_W: Position (m), shape (3,).
+        v_W: Velocity (m/s), shape (3,).
+        a_W: Acceleration (m/s^2), shape (3,).
+        j_W: Jerk (m/s^3), shape (3,).
+        yaw_rad: Heading of the body x axis about world z (rad).
+        yaw_rate_rad_s: Its time derivative (rad/s).
+    """
+
+    p_W: np.ndarray
+    v_W: np.ndarray = field(default_factory=_zeros3)
+    a_W: np.ndarray = field(default_factory=_zeros3)
+    j_W: np.ndarray = field(default_factory=_zeros3)
+    yaw_rad: float = 0.0
+    yaw_rate_rad_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        """Validate shapes; store read-only float arrays."""
+        for name in ("p_W", "v_W", "a_W", "j_W"):
+            object.__setattr__(self, name, _vec("FlatOutput", name, getattr(self, name), (3,)))
+        for name in ("yaw_rad", "yaw_rate_rad_s"):
+            value = float(getattr(self, name))
+            if not np.isfinite(value):
+                raise ValueError(f"FlatOutput.{name}: non-finite value {value}")
+            object.__setattr__(self, name, value)
+
+
+@dataclass(frozen=True)
+class NavState:
+    """The vehicle state a position controller consumes (from an estimate or from ground truth).
+
+    Attributes:
+        R_WB: Orientation, maps B coordinates to W, shape (3, 3).
+        p_WB: Position of B's origin in W (m), shape (3,).
+        v_WB: Velocity of B's origin in W (m/s), shape (3,).
+        omega_B: Angular velocity of B relative to W, expressed in B (rad/s), shape (3,).
+    """
+
+    R_WB: np.ndarray
+    p_WB: np.ndarray
+    v_WB: np.ndarray = field(default_factory=_zeros3)
+    omega_B: np.ndarray = field(default_factory=_zeros3)
+
+    def __post_init__(self) -> None:
+        """Validate shapes; store read-only float arrays."""
+        object.__setattr__(self, "R_WB", _vec("NavState", "R_WB", self.R_WB, (3, 3)))
+        for name in ("p_WB", "v_WB", "omega_B"):
+            object.__setattr__(self, name, _vec("NavState", name, getattr(self, name), (3,)))
+
+    @classmethod
+    def from_estimate(cls, estimate: object) -> NavState:
+        """Build from a :class:`viotb.vio.types.StateEstimate` (or anything with the same attributes).
+
+        Uses ``R_WB``, ``p_WB``, ``v_WB`` and ``omega_B_rad_s`` (bias-corrected rate); the estimate type is
+        not imported so that this room depends on numpy only.
+        """
+        return cls(
+            R_WB=estimate.R_WB,  # type: ignore[attr-defined]
+            p_WB=estimate.p_WB,  # type: ignore[attr-defined]
+            v_WB=estimate.v_WB,  # type: ignore[attr-defined]
+            omega_B=estimate.omega_B_rad_s,  # type: ignore[attr-defined]
+        )
+
+
+@dataclass(frozen=True)
+class ControlCommand:
+    """One controller output.
+
+    Attributes:
+        thrusts_N: Per-motor thrusts after mixing and saturation (N), shape (4,); MuJoCo ``ctrl``.
+        collective_N: Collective thrust actually produced by ``thrusts_N`` (N).
+        moments_B_Nm: Body moments actually produced by ``thrusts_N`` (N m), shape (3,).
+        R_WB_desired: Desired attitude from the position loop, shape (3, 3).
+    """
+
+    thrusts_N: np.ndarray
+    collective_N: float
+    moments_B_Nm: np.ndarray
+    R_WB_desired: np.ndarray
+
+    def __post_init__(self) -> None:
+        """Validate shapes; store read-only float arrays."""
+        object.__setattr__(self, "thrusts_N", _vec("ControlCommand", "thrusts_N", self.thrusts_N, (4,)))
+        object.__setattr__(
+            self, "moments_B_Nm", _vec("ControlCommand", "moments_B_Nm", self.moments_B_Nm, (3,))
+        )
+        object.__setattr__(
+            self, "R_WB_desired", _vec("ControlCommand", "R_WB_desired", self.R_WB_desired, (3, 3))
+        )
+        object.__setattr__(self, "collective_N", float(self.collective_N))
+
+
+@runtime_checkable
+class PositionController(Protocol):
+    """A controller that turns a navigation state and a flat-output setpoint into motor thrusts."""
+
+    def update(self, t_s: float, state: NavState, setpoint: FlatOutput) -> ControlCommand:
+        """Compute the command at time ``t_s`` (s).
+
+        Args:
+            t_s: Current time (s); used for integral terms.
+            state: Current (estimated or true) navigation state.
+            setpoint: Desired flat output at ``t_s``.
+
+        Returns:
+            The motor command.
+        """
+        ...
