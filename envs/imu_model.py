@@ -1,0 +1,283 @@
+"""Synthetic IMU: turn-on bias, bias random walk, white noise, scale/misalignment, quantization, saturation.
+
+Measurement model per sample k (Kalibr convention, cf. Furgale et al. "Kalibr" IMU noise model wiki;
+Woodman, "An introduction to inertial navigation", 2007, sec. 4-5)::
+
+    y_k   = clip(quantize(M (x_k) + b_k + n_k))        M = I + diag(s) + A_offdiag
+    n_k   ~ N(0, (sigma_c / sqrt(dt))^2 I)             white noise, sigma_c the noise density
+    b_k+1 = b_k + w_k,  w_k ~ N(0, (sigma_b sqrt(dt))^2 I)   bias random walk, sigma_b its density
+
+``x_k`` is the true angular rate ``omega_B`` (rad/s) or specific force ``R_WB^T (a_W - g_W)`` (m/s^2) in B.
+The first sample uses the turn-on bias ``b_0``; the bias advances after each sample. ``dt = 1 / rate_hz``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from viotb.vio.types import ImuNoise, ImuSample, ImuSeries
+
+_DEG = math.pi / 180.0
+_G = 9.80665  # standard gravity for datasheet "g" ranges (m/s^2)
+_CHUNK_SAMPLES = 65536  # samples generated per vectorized block (bounds memory on long logs)
+
+
+@dataclass(frozen=True)
+class ImuModelParams:
+    """Parameters of :class:`ImuModel` (units in each field's name).
+
+    Attributes:
+        rate_hz: Sample rate (Hz); ``dt = 1 / rate_hz`` sets the discrete noise sigmas.
+        noise: Continuous-time white-noise and random-walk densities (Kalibr convention).
+        gyro_turn_on_bias_sigma_rad_s: Per-axis sigma of the gyro bias drawn at power-on (rad/s).
+        accel_turn_on_bias_sigma_m_s2: Per-axis sigma of the accelerometer bias drawn at power-on (m/s^2).
+        gyro_scale_sigma: Per-axis sigma of the gyro scale-factor error (fraction, 1e-3 = 1000 ppm).
+        accel_scale_sigma: Per-axis sigma of the accelerometer scale-factor error (fraction).
+        misalignment_sigma_rad: Sigma of each off-diagonal axis-misalignment term (rad), both sensors.
+        gyro_quantization_rad_s: Gyro output step (rad/s); 0 disables quantization.
+        accel_quantization_m_s2: Accelerometer output step (m/s^2); 0 disables quantization.
+        gyro_range_rad_s: Gyro full-scale range (rad/s); readings are clipped to +-range.
+        accel_range_m_s2: Accelerometer full-scale range (m/s^2); readings are clipped to +-range.
+    """
+
+    rate_hz: float = 200.0
+    noise: ImuNoise = field(default_factory=ImuNoise)
+    gyro_turn_on_bias_sigma_rad_s: float = 0.0
+    accel_turn_on_bias_sigma_m_s2: float = 0.0
+    gyro_scale_sigma: float = 0.0
+    accel_scale_sigma: float = 0.0
+    misalignment_sigma_rad: float = 0.0
+    gyro_quantization_rad_s: float = 0.0
+    accel_quantization_m_s2: float = 0.0
+    gyro_range_rad_s: float = math.inf
+    accel_range_m_s2: float = math.inf
+
+    def __post_init__(self) -> None:
+        """Validate ranges and signs."""
+        if not (self.rate_hz > 0.0 and math.isfinite(self.rate_hz)):
+            raise ValueError(f"ImuModelParams.rate_hz must be positive and finite, got {self.rate_hz}")
+        for name in (
+            "gyro_turn_on_bias_sigma_rad_s",
+            "accel_turn_on_bias_sigma_m_s2",
+            "gyro_scale_sigma",
+            "accel_scale_sigma",
+            "misalignment_sigma_rad",
+            "gyro_quantization_rad_s",
+            "accel_quantization_m_s2",
+        ):
+            value = getattr(self, name)
+            if not (value >= 0.0 and math.isfinite(value)):
+                raise ValueError(f"ImuModelParams.{name} must be finite and >= 0, got {value}")
+        for name in ("gyro_range_rad_s", "accel_range_m_s2"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"ImuModelParams.{name} must be > 0, got {getattr(self, name)}")
+
+    @property
+    def dt_s(self) -> float:
+        """Nominal sample period (s)."""
+        return 1.0 / self.rate_hz
+
+
+_PRESETS: dict[str, ImuModelParams] = {
+    # Analog Devices ADIS16448 (EuRoC's VI-sensor IMU). Densities from EuRoC imu0/sensor.yaml; ranges,
+    # LSB sizes and misalignment from the ADIS16448 datasheet (rev. D); turn-on biases sized like the
+    # EuRoC V1_01 ground-truth biases (~0.02 rad/s, ~0.05 m/s^2).
+    "adis16448": ImuModelParams(
+        rate_hz=200.0,
+        noise=ImuNoise(1.6968e-4, 1.9393e-5, 2.0e-3, 3.0e-3),
+        gyro_turn_on_bias_sigma_rad_s=0.02,
+        accel_turn_on_bias_sigma_m_s2=0.05,
+        gyro_scale_sigma=2e-3,
+        accel_scale_sigma=2e-3,
+        misalignment_sigma_rad=0.05 * _DEG,
+        gyro_quantization_rad_s=0.04 * _DEG,
+        accel_quantization_m_s2=0.833e-3 * _G,
+        gyro_range_rad_s=1000.0 * _DEG,
+        accel_range_m_s2=18.0 * _G,
+    ),
+    # Bosch BMI088-like consumer MEMS part (drones, headsets): datasheet densities (gyro 0.014 deg/s/sqrtHz,
+    # accel 175 ug/sqrtHz at the +-24 g range) inflated for vibration, larger turn-on biases and scale errors.
+    "bmi088": ImuModelParams(
+        rate_hz=200.0,
+        noise=ImuNoise(
+            gyro_noise_density_rad_s_sqrthz=0.014 * _DEG * 2.0,
+            gyro_random_walk_rad_s2_sqrthz=1.0e-4,
+            accel_noise_density_m_s2_sqrthz=175e-6 * _G * 2.0,
+            accel_random_walk_m_s3_sqrthz=1.0e-2,
+        ),
+        gyro_turn_on_bias_sigma_rad_s=1.0 * _DEG,
+        accel_turn_on_bias_sigma_m_s2=0.2,
+        gyro_scale_sigma=1e-2,
+        accel_scale_sigma=5e-3,
+        misalignment_sigma_rad=0.5 * _DEG,
+        gyro_quantization_rad_s=2000.0 * _DEG / 32768.0,
+        accel_quantization_m_s2=24.0 * _G / 32768.0,
+        gyro_range_rad_s=2000.0 * _DEG,
+        accel_range_m_s2=24.0 * _G,
+    ),
+    # Perfect sensor: no noise, no bias, no scale errors, no quantization, infinite range.
+    "ideal": ImuModelParams(rate_hz=200.0, noise=ImuNoise(0.0, 0.0, 0.0, 0.0)),
+}
+
+
+def imu_preset_names() -> tuple[str, ...]:
+    """Names accepted by :func:`imu_preset`."""
+    return tuple(sorted(_PRESETS))
+
+
+def imu_preset(name: str) -> ImuModelParams:
+    """Parameters of a named IMU part (``adis16448``, ``bmi088``, ``ideal``).
+
+    Raises:
+        ValueError: Unknown name; the message lists the presets.
+    """
+    try:
+        return _PRESETS[name]
+    except KeyError:
+        known = ", ".join(imu_preset_names())
+        raise ValueError(f"unknown IMU preset {name!r}; known presets: {known}") from None
+
+
+def _sensor_matrix(rng: np.random.Generator, scale_sigma: float, misalignment_sigma_rad: float) -> np.ndarray:
+    """``I + diag(scale) + off-diagonal misalignment``, shape (3, 3)."""
+    scale = rng.standard_normal(3) * scale_sigma
+    off = rng.standard_normal(6) * misalignment_sigma_rad
+    M = np.eye(3) + np.diag(scale)
+    M[~np.eye(3, dtype=bool)] = off
+    return M
+
+
+class ImuModel:
+    """Sequential IMU sensor model; all randomness comes from the injected generator.
+
+    The constructor draws the turn-on biases, scale factors and misalignments. Each measurement then
+    draws 12 normals in the order [gyro white, accel white, gyro walk, accel walk], so
+    :meth:`measure` called N times and :meth:`measure_series` on N samples give identical output.
+
+    Args:
+        params: Sensor parameters.
+        rng: Random generator (seeded by the caller).
+    """
+
+    def __init__(self, params: ImuModelParams, rng: np.random.Generator) -> None:
+        """Draw the per-unit errors (turn-on bias, scale, misalignment)."""
+        self._params = params
+        self._rng = rng
+        self._gyro_bias_rad_s = rng.standard_normal(3) * params.gyro_turn_on_bias_sigma_rad_s
+        self._accel_bias_m_s2 = rng.standard_normal(3) * params.accel_turn_on_bias_sigma_m_s2
+        self._M_gyro = _sensor_matrix(rng, params.gyro_scale_sigma, params.misalignment_sigma_rad)
+        self._M_accel = _sensor_matrix(rng, params.accel_scale_sigma, params.misalignment_sigma_rad)
+        dt = params.dt_s
+        n = params.noise
+        # Discrete sigmas (Kalibr): white = density / sqrt(dt); walk per step = density * sqrt(dt).
+        self._sigmas = np.array(
+            [
+                n.gyro_noise_density_rad_s_sqrthz / math.sqrt(dt),
+                n.accel_noise_density_m_s2_sqrthz / math.sqrt(dt),
+                n.gyro_random_walk_rad_s2_sqrthz * math.sqrt(dt),
+                n.accel_random_walk_m_s3_sqrthz * math.sqrt(dt),
+            ]
+        )
+
+    @property
+    def params(self) -> ImuModelParams:
+        """The sensor parameters."""
+        return self._params
+
+    @property
+    def gyro_bias_rad_s(self) -> np.ndarray:
+        """True gyro bias (rad/s) that the NEXT sample will carry, shape (3,) (a copy)."""
+        return self._gyro_bias_rad_s.copy()
+
+    @property
+    def accel_bias_m_s2(self) -> np.ndarray:
+        """True accelerometer bias (m/s^2) that the NEXT sample will carry, shape (3,) (a copy)."""
+        return self._accel_bias_m_s2.copy()
+
+    @property
+    def gyro_matrix(self) -> np.ndarray:
+        """Gyro scale/misalignment matrix ``I + S + A``, shape (3, 3) (a copy)."""
+        return self._M_gyro.copy()
+
+    @property
+    def accel_matrix(self) -> np.ndarray:
+        """Accelerometer scale/misalignment matrix ``I + S + A``, shape (3, 3) (a copy)."""
+        return self._M_accel.copy()
+
+    def measure(self, t_s: float, omega_B_true: np.ndarray, specific_force_B_true: np.ndarray) -> ImuSample:
+        """One reading from the true angular rate (rad/s) and specific force (m/s^2) in B, shape (3,) each."""
+        series = self.measure_series(
+            np.array([t_s], dtype=float),
+            np.asarray(omega_B_true, dtype=float).reshape(1, 3),
+            np.asarray(specific_force_B_true, dtype=float).reshape(1, 3),
+        )
+        return series.sample(0)
+
+    def measure_series(self, t_s: np.ndarray, omega_B: np.ndarray, f_B: np.ndarray) -> ImuSeries:
+        """Readings for N consecutive samples (see :meth:`measure_series_with_biases`)."""
+        series, _, _ = self.measure_series_with_biases(t_s, omega_B, f_B)
+        return series
+
+    def measure_series_with_biases(
+        self, t_s: np.ndarray, omega_B: np.ndarray, f_B: np.ndarray
+    ) -> tuple[ImuSeries, np.ndarray, np.ndarray]:
+        """Readings for N consecutive samples plus the true biases each sample carried.
+
+        Args:
+            t_s: Sample times (s) on the IMU clock, shape (N,), strictly increasing.
+            omega_B: True angular rates in B (rad/s), shape (N, 3).
+            f_B: True specific forces ``R_WB^T (a_W - g_W)`` in B (m/s^2), shape (N, 3).
+
+        Returns:
+            ``(series, gyro_bias_rad_s (N, 3), accel_bias_m_s2 (N, 3))``.
+        """
+        t_s = np.asarray(t_s, dtype=float)
+        omega_B = np.asarray(omega_B, dtype=float)
+        f_B = np.asarray(f_B, dtype=float)
+        n = t_s.shape[0] if t_s.ndim == 1 else -1
+        if n < 0 or omega_B.shape != (n, 3) or f_B.shape != (n, 3):
+            raise ValueError(
+                f"measure_series expects t_s (N,), omega_B (N, 3), f_B (N, 3); got {t_s.shape}, "
+                f"{omega_B.shape}, {f_B.shape}"
+            )
+        if n > 1 and not np.all(np.diff(t_s) > 0.0):
+            k = int(np.argmin(np.diff(t_s) > 0.0))
+            raise ValueError(
+                f"IMU times must be strictly increasing: t[{k}]={t_s[k]}, t[{k + 1}]={t_s[k + 1]}"
+            )
+        if not (np.all(np.isfinite(omega_B)) and np.all(np.isfinite(f_B))):
+            raise ValueError("measure_series: omega_B and f_B must be finite")
+        gyro = np.empty((n, 3))
+        accel = np.empty((n, 3))
+        bias_g = np.empty((n, 3))
+        bias_a = np.empty((n, 3))
+        for start in range(0, n, _CHUNK_SAMPLES):
+            stop = min(start + _CHUNK_SAMPLES, n)
+            draws = self._rng.standard_normal((stop - start, 4, 3)) * self._sigmas[None, :, None]
+            # Bias used by sample k = b_0 + sum of the walk steps of samples < k (sequential order).
+            walk_g = np.cumsum(np.concatenate([self._gyro_bias_rad_s[None], draws[:, 2]]), axis=0)
+            walk_a = np.cumsum(np.concatenate([self._accel_bias_m_s2[None], draws[:, 3]]), axis=0)
+            bias_g[start:stop] = walk_g[:-1]
+            bias_a[start:stop] = walk_a[:-1]
+            self._gyro_bias_rad_s = walk_g[-1].copy()
+            self._accel_bias_m_s2 = walk_a[-1].copy()
+            gyro[start:stop] = omega_B[start:stop] @ self._M_gyro.T + walk_g[:-1] + draws[:, 0]
+            accel[start:stop] = f_B[start:stop] @ self._M_accel.T + walk_a[:-1] + draws[:, 1]
+        p = self._params
+        gyro = _quantize(gyro, p.gyro_quantization_rad_s)
+        accel = _quantize(accel, p.accel_quantization_m_s2)
+        saturated = np.any(np.abs(gyro) > p.gyro_range_rad_s, axis=1) | np.any(
+            np.abs(accel) > p.accel_range_m_s2, axis=1
+        )
+        gyro = np.clip(gyro, -p.gyro_range_rad_s, p.gyro_range_rad_s)
+        accel = np.clip(accel, -p.accel_range_m_s2, p.accel_range_m_s2)
+        return ImuSeries(t_s.copy(), gyro, accel, saturated), bias_g, bias_a
+
+
+def _quantize(x: np.ndarray, step: float) -> np.ndarray:
+    """Round to the nearest multiple of ``step`` (no-op when ``step == 0``)."""
+    if step <= 0.0:
+        return x
+    return np.round(x / step) * step
