@@ -4,7 +4,8 @@ The allocation matrix ``A`` (4 x 4) maps motor thrusts ``f`` (N) to the wrench `
 row 0 is the thrust component along ``z_B`` and rows 1-3 the moment ``r_i x a_i f_i + k_i a_i f_i`` (lever arm
 plus rotor reaction moment), cf. rotorpy ``SE3Control.f_to_TM``. It is built and inverted once.
 
-Saturation policy of :meth:`Mixer.motor_thrusts` (priority order; exact inversion whenever the request fits):
+Saturation policy of :meth:`Mixer.motor_thrusts`: a request that fits within the per-motor limits is inverted
+exactly. Otherwise, in priority order:
 
 1. Collective thrust is clipped to what the motors can give in total.
 2. Roll/pitch moments come first: if their spread cannot fit between the limits at any collective thrust, they
@@ -77,6 +78,9 @@ class Mixer:
                 f"{collective_N!r}, {np.asarray(moments_B_Nm)!r}"
             )
         lo, hi = self._min_N, self._max_N
+        exact = self._allocation_inv @ np.concatenate([[collective_N], moments])
+        if np.all(exact >= lo) and np.all(exact <= hi):
+            return exact
         col_T, col_rp, col_yaw = (
             self._allocation_inv[:, 0],
             self._allocation_inv[:, 1:3],
