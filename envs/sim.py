@@ -1,0 +1,303 @@
+"""MuJoCo simulation of one vehicle (quadrotor or headset rig) in one scene, with named truth readers.
+
+The wrapper owns one ``MjModel``/``MjData`` pair (dm_control's ``Physics`` idea): all names come from
+:mod:`viotb.models.constants`, ids are resolved once in ``__init__``, and every reader returns a numpy
+array with its frame and unit in its name. Frames: ``W`` world (z up), ``B`` body = IMU frame, ``C`` the
+OpenCV camera frame (x right, y down, z forward).
+
+Two ways to move the vehicle:
+
+* dynamics: :meth:`Simulation.step` with motor thrusts (quadrotor);
+* kinematics: :meth:`Simulation.set_pose` writes the pose and twist (free-joint ``qpos``/``qvel`` for the
+  quadrotor, the mocap pose for the headset) and runs ``mj_forward``.
+
+The headset is a mocap body: it has no degrees of freedom, so MuJoCo's gyro and accelerometer on it read
+zero rate and plain gravity. Its truth readers therefore return the kinematic twist and acceleration
+last given to :meth:`Simulation.set_pose`.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from viotb.envs.render import camera_world_pose
+from viotb.models import load_model
+from viotb.models.constants import (
+    ACCEL_SENSOR,
+    GYRO_SENSOR,
+    HEAD_BODY,
+    IMU_POS_SENSOR,
+    IMU_QUAT_SENSOR,
+    ONBOARD_CAMERA,
+    QUAD_FREEJOINT,
+    QUAD_MOTORS,
+    VEHICLE_BODIES,
+)
+from viotb.vio.lie import quat_wxyz_to_rotmat, rotmat_to_quat_wxyz
+from viotb.vio.types import gravity_W
+
+_ROTATION_ATOL = 1e-6
+"""Tolerance on ``R^T R = I`` and ``det R = 1`` for rotations given to :meth:`Simulation.set_pose`."""
+
+
+def _name_id(model: mujoco.MjModel, obj: mujoco.mjtObj, name: str) -> int:
+    """Id of a named model element, with a clear error naming the missing element."""
+    obj_id = mujoco.mj_name2id(model, obj, name)
+    if obj_id < 0:
+        raise ValueError(f"{obj.name[6:].lower()} {name!r} not found in the model")
+    return obj_id
+
+
+def sensor_slice(model: mujoco.MjModel, name: str) -> slice:
+    """Slice of ``data.sensordata`` holding the named sensor.
+
+    Raises:
+        ValueError: No sensor of that name.
+    """
+    sensor_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)
+    if sensor_id < 0:
+        names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SENSOR, i) for i in range(model.nsensor)]
+        raise ValueError(f"sensor {name!r} not in model; sensors: {names}")
+    adr = int(model.sensor_adr[sensor_id])
+    return slice(adr, adr + int(model.sensor_dim[sensor_id]))
+
+
+def sensor_data(model: mujoco.MjModel, data: mujoco.MjData, name: str) -> np.ndarray:
+    """Copy of the named sensor's reading (mujoco_playground's ``get_sensor_data``), shape (dim,)."""
+    return data.sensordata[sensor_slice(model, name)].copy()
+
+
+def _check_vector(value, name: str, size: int = 3) -> np.ndarray:
+    """``value`` as a finite float array of shape (size,), or a ValueError naming the argument."""
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (size,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be a finite array of shape ({size},), got {value!r}")
+    return arr
+
+
+def _check_rotation(R: np.ndarray, name: str) -> np.ndarray:
+    """``R`` as a (3, 3) rotation matrix, or a ValueError naming the argument."""
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise ValueError(f"{name} must be a finite (3, 3) rotation matrix, got shape {R.shape}")
+    if not np.allclose(R.T @ R, np.eye(3), atol=_ROTATION_ATOL) or abs(np.linalg.det(R) - 1) > _ROTATION_ATOL:
+        raise ValueError(f"{name} is not a rotation matrix (R^T R != I or det != 1): {R.tolist()}")
+    return R
+
+
+class Simulation:
+    """One vehicle in one scene.
+
+    Args:
+        vehicle: ``"quadrotor"`` or ``"headset"``.
+        scene: Scene name from ``viotb.models.constants.SCENE_XMLS``.
+
+    Attributes:
+        model: The compiled ``mujoco.MjModel``.
+        data: Its ``mujoco.MjData``.
+        vehicle: The vehicle name.
+        scene: The scene name.
+
+    Raises:
+        ValueError: Unknown vehicle or scene.
+    """
+
+    def __init__(self, vehicle: str = "quadrotor", scene: str = "textured_room") -> None:
+        """Compile the model and resolve every id the readers use."""
+        self.model = load_model(vehicle, scene)
+        self.data = mujoco.MjData(self.model)
+        self.vehicle = vehicle
+        self.scene = scene
+        m = self.model
+        self._body_id = _name_id(m, mujoco.mjtObj.mjOBJ_BODY, VEHICLE_BODIES[vehicle])
+        self._cam_id = _name_id(m, mujoco.mjtObj.mjOBJ_CAMERA, ONBOARD_CAMERA)
+        self._gyro = sensor_slice(m, GYRO_SENSOR)
+        self._accel = sensor_slice(m, ACCEL_SENSOR)
+        self._imu_pos = sensor_slice(m, IMU_POS_SENSOR)
+        self._imu_quat = sensor_slice(m, IMU_QUAT_SENSOR)
+        self._is_mocap = vehicle == "headset"
+        if self._is_mocap:
+            self._mocap_id = int(m.body_mocapid[_name_id(m, mujoco.mjtObj.mjOBJ_BODY, HEAD_BODY)])
+            self._motor_ids = np.zeros(0, dtype=int)
+        else:
+            joint_id = _name_id(m, mujoco.mjtObj.mjOBJ_JOINT, QUAD_FREEJOINT)
+            self._qpos_adr = int(m.jnt_qposadr[joint_id])
+            self._qvel_adr = int(m.jnt_dofadr[joint_id])
+            self._motor_ids = np.array([_name_id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, n) for n in QUAD_MOTORS])
+        # Geoms of the vehicle's subtree (for in_collision).
+        root_of_body = m.body_rootid
+        self._vehicle_geoms = frozenset(
+            int(g) for g in range(m.ngeom) if root_of_body[m.geom_bodyid[g]] == self._body_id
+        )
+        # Kinematic twist and acceleration of the mocap headset (W / B frames; m/s, rad/s, m/s^2).
+        self._kin_v_W = np.zeros(3)
+        self._kin_omega_B = np.zeros(3)
+        self._kin_a_W = np.zeros(3)
+        mujoco.mj_forward(self.model, self.data)
+
+    # ------------------------------------------------------------------ time and stepping
+
+    @property
+    def model_name(self) -> str:
+        """``"<vehicle>_<scene>"``, the composed model's name."""
+        return f"{self.vehicle}_{self.scene}"
+
+    @property
+    def time_s(self) -> float:
+        """Simulation time (s)."""
+        return float(self.data.time)
+
+    @property
+    def timestep_s(self) -> float:
+        """Physics timestep (s)."""
+        return float(self.model.opt.timestep)
+
+    def keyframe_names(self) -> list[str]:
+        """Names of the model's keyframes."""
+        return [mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_KEY, i) for i in range(self.model.nkey)]
+
+    def reset(self, keyframe: str | None = None) -> None:
+        """Reset to the model defaults (``keyframe=None``) or to a named keyframe, then ``mj_forward``.
+
+        Raises:
+            ValueError: Unknown keyframe (the message lists the model's keyframes).
+        """
+        if keyframe is None:
+            mujoco.mj_resetData(self.model, self.data)
+        else:
+            key_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_KEY, keyframe)
+            if key_id < 0:
+                known = self.keyframe_names()
+                raise ValueError(f"keyframe {keyframe!r} not in model {self.model_name}; keyframes: {known}")
+            mujoco.mj_resetDataKeyframe(self.model, self.data, key_id)
+        self._kin_v_W[:] = 0.0
+        self._kin_omega_B[:] = 0.0
+        self._kin_a_W[:] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+
+    def step(self, ctrl: np.ndarray | None = None, n_steps: int = 1) -> None:
+        """Advance the physics ``n_steps`` timesteps holding ``ctrl``, then ``mj_forward``.
+
+        The final ``mj_forward`` makes every reader (poses, sensors, camera) consistent with the state at
+        :attr:`time_s` (``mj_step`` alone leaves them at the state before its last integration).
+
+        Args:
+            ctrl: Actuator commands, shape (nu,) (quadrotor: motor thrusts (N), clipped to ctrlrange by
+                MuJoCo); None keeps the current ``data.ctrl``.
+            n_steps: Number of physics steps (>= 1).
+
+        Raises:
+            ValueError: Wrong ``ctrl`` shape, non-finite ``ctrl`` or ``n_steps < 1``.
+        """
+        if n_steps < 1:
+            raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+        if ctrl is not None:
+            ctrl = np.asarray(ctrl, dtype=float)
+            if ctrl.shape != (self.model.nu,) or not np.all(np.isfinite(ctrl)):
+                raise ValueError(f"ctrl must be a finite array of shape ({self.model.nu},), got {ctrl!r}")
+            self.data.ctrl[:] = ctrl
+        for _ in range(n_steps):
+            mujoco.mj_step(self.model, self.data)
+        mujoco.mj_forward(self.model, self.data)
+
+    # ------------------------------------------------------------------ kinematic driving
+
+    def set_pose(
+        self,
+        R_WB: np.ndarray,
+        p_WB: np.ndarray,
+        v_WB: np.ndarray | None = None,
+        omega_B: np.ndarray | None = None,
+        a_W: np.ndarray | None = None,
+    ) -> None:
+        """Place the vehicle kinematically, then ``mj_forward``.
+
+        Args:
+            R_WB: Orientation, shape (3, 3).
+            p_WB: Position of B in W (m), shape (3,).
+            v_WB: Velocity of B in W (m/s), shape (3,); zero when None.
+            omega_B: Angular rate of B w.r.t. W, in B (rad/s), shape (3,); zero when None.
+            a_W: Headset only: acceleration of B in W (m/s^2), shape (3,), reported by
+                :meth:`specific_force_B`; zero when None. The quadrotor's acceleration comes from its
+                dynamics, so passing it there is an error.
+
+        Raises:
+            ValueError: Bad shapes, non-finite values, ``R_WB`` not a rotation, or ``a_W`` for the quadrotor.
+        """
+        R_WB = _check_rotation(R_WB, "R_WB")
+        p_WB = _check_vector(p_WB, "p_WB")
+        v_WB = np.zeros(3) if v_WB is None else _check_vector(v_WB, "v_WB")
+        omega_B = np.zeros(3) if omega_B is None else _check_vector(omega_B, "omega_B")
+        quat_wxyz = rotmat_to_quat_wxyz(R_WB)
+        if self._is_mocap:
+            self.data.mocap_pos[self._mocap_id] = p_WB
+            self.data.mocap_quat[self._mocap_id] = quat_wxyz
+            self._kin_v_W[:] = v_WB
+            self._kin_omega_B[:] = omega_B
+            self._kin_a_W[:] = np.zeros(3) if a_W is None else _check_vector(a_W, "a_W")
+        else:
+            if a_W is not None:
+                raise ValueError("a_W is only for the headset; the quadrotor's acceleration comes from ctrl")
+            # MuJoCo free joint: qpos = (p_W, quat_wxyz), qvel = (v_W, omega_B).
+            self.data.qpos[self._qpos_adr : self._qpos_adr + 3] = p_WB
+            self.data.qpos[self._qpos_adr + 3 : self._qpos_adr + 7] = quat_wxyz
+            self.data.qvel[self._qvel_adr : self._qvel_adr + 3] = v_WB
+            self.data.qvel[self._qvel_adr + 3 : self._qvel_adr + 6] = omega_B
+        mujoco.mj_forward(self.model, self.data)
+
+    # ------------------------------------------------------------------ truth readers
+
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pose of B (= IMU frame) in W from the ``imu_quat``/``imu_pos`` sensors.
+
+        Returns:
+            ``(R_WB (3, 3), p_WB (3,) m)``.
+        """
+        quat_wxyz = self.data.sensordata[self._imu_quat]
+        return quat_wxyz_to_rotmat(quat_wxyz), self.data.sensordata[self._imu_pos].copy()
+
+    def velocity_W(self) -> np.ndarray:
+        """Velocity of B's origin in W (m/s), shape (3,)."""
+        if self._is_mocap:
+            return self._kin_v_W.copy()
+        return self.data.qvel[self._qvel_adr : self._qvel_adr + 3].copy()
+
+    def angular_velocity_B(self) -> np.ndarray:
+        """Angular rate of B w.r.t. W, in B (rad/s), shape (3,) (the noiseless gyro)."""
+        if self._is_mocap:
+            return self._kin_omega_B.copy()
+        return self.data.sensordata[self._gyro].copy()
+
+    def specific_force_B(self) -> np.ndarray:
+        """Specific force ``R_WB^T (a_W - g_W)`` at the IMU, in B (m/s^2), shape (3,) (noiseless accel).
+
+        Quadrotor: MuJoCo's accelerometer at the ``imu`` site (accelerations from the dynamics under the
+        current ``ctrl``). Headset: computed from the ``a_W`` given to :meth:`set_pose`.
+        """
+        if self._is_mocap:
+            R_WB, _ = self.pose()
+            return R_WB.T @ (self._kin_a_W - gravity_W())
+        return self.data.sensordata[self._accel].copy()
+
+    def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pose of the onboard camera in W, OpenCV convention (x right, y down, z forward).
+
+        Returns:
+            ``(R_WC (3, 3), p_WC (3,) m)``.
+        """
+        return camera_world_pose(self.data, self._cam_id)
+
+    def in_collision(self) -> bool:
+        """True when any active contact involves a geom of the vehicle.
+
+        MuJoCo does not collide mocap bodies with the static world, so the headset never reports contact.
+        """
+        contacts = self.data.contact
+        for i in range(self.data.ncon):
+            if int(contacts.geom1[i]) in self._vehicle_geoms or int(contacts.geom2[i]) in self._vehicle_geoms:
+                return True
+        return False
+
+    def motor_thrusts_N(self) -> np.ndarray:
+        """Thrust of each motor (N), shape (4,) for the quadrotor (after ctrlrange clipping); (0,) headset."""
+        return self.data.actuator_force[self._motor_ids].copy()
