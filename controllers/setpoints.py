@@ -302,8 +302,9 @@ class ExcitationManeuver:
     """Small smooth oscillations in x, y, z and yaw around a point, starting and ending at rest.
 
     Each channel is ``A_k h(t) sin(2 pi f_k t)`` with the window ``h(t) = sin^2(pi t / duration_s)``, whose
-    value and slope vanish at both ends. The defaults give peak accelerations of about 1-1.5 m/s^2 and yaw
-    rates near 1 rad/s: enough to excite the accelerometer and gyro axes for bias and scale observability.
+    value and slope vanish at both ends. The defaults give peak accelerations of about 1.2-1.4 m/s^2 per axis
+    (``A (2 pi f)^2``) and yaw rates near 1 rad/s: enough to excite the accelerometer and gyro axes for bias
+    and scale observability.
 
     Attributes:
         center_W_m: Point to oscillate about (m), shape (3,).
@@ -316,7 +317,7 @@ class ExcitationManeuver:
     """
 
     center_W_m: np.ndarray
-    amplitude_m: np.ndarray = field(default_factory=lambda: np.array([0.15, 0.15, 0.08]))
+    amplitude_m: np.ndarray = field(default_factory=lambda: np.array([0.12, 0.07, 0.04]))
     frequency_hz: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.7, 0.9]))
     yaw_center_rad: float = 0.0
     yaw_amplitude_rad: float = 0.4
