@@ -41,9 +41,8 @@ class SE3Gains:
 
     Position loop: natural frequency about 3 rad/s (x, y) and 4 rad/s (z), damping ratio about 1, so a 1 m
     step settles in about 2 s without overshoot, and 3 cm of position noise moves the thrust by about 3 %.
-    Attitude loop: about 20 rad/s and damping ratio 0.9 (roll, pitch); yaw about 6 rad/s, over-damped (ratio
-    1.5) because the rotor drag moment saturates near 0.19 N m: a 90 deg yaw step settles in about 1 s without
-    overshoot.
+    Attitude loop: about 20 rad/s, damping ratio 0.9 (roll, pitch) and 8.5 rad/s, ratio 1.05 (yaw); the rotor
+    drag moment saturates near 0.19 N m, and a 90 deg yaw step settles in about 1 s without overshoot.
 
     Attributes:
         kp_N_m: Position gain (N/m), shape (3,).
@@ -60,7 +59,7 @@ class SE3Gains:
     kv_N_s_m: np.ndarray = field(default_factory=lambda: _arr((7.2, 7.2, 9.6)))
     ki_N_m_s: np.ndarray = field(default_factory=lambda: _arr((0.0, 0.0, 0.0)))
     integral_limit_N: float = 2.0
-    kR_Nm_rad: np.ndarray = field(default_factory=lambda: _arr((4.9, 4.9, 0.8)))
+    kR_Nm_rad: np.ndarray = field(default_factory=lambda: _arr((4.9, 4.9, 1.6)))
     kw_Nm_s_rad: np.ndarray = field(default_factory=lambda: _arr((0.44, 0.44, 0.4)))
     max_tilt_rad: float = np.deg2rad(35.0)
     min_thrust_fraction: float = 0.1
@@ -97,7 +96,7 @@ def desired_attitude(force_W: np.ndarray, yaw_rad: float) -> np.ndarray:
 
 def attitude_error(R_WB: np.ndarray, R_WB_desired: np.ndarray) -> np.ndarray:
     """Attitude error ``e_R = 1/2 vee(R_d^T R - R^T R_d)`` in B (3,) (Lee et al. 2010, eq. 10)."""
-    return vee(R_WB_desired.T @ R_WB - R_WB.T @ R_WB_desired)
+    return 0.5 * vee(R_WB_desired.T @ R_WB - R_WB.T @ R_WB_desired)
 
 
 def desired_body_rate(R_d: np.ndarray, thrust_N: float, mass_kg: float, setpoint: FlatOutput) -> np.ndarray:
