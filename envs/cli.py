@@ -97,6 +97,87 @@ def record(
     _emit(result, as_json, f"recorded {scenario} -> {out}")
 
 
+@app.command("eval")
+def eval_(
+    dataset: Path = typer.Argument(..., help="EuRoC-layout folder (containing mav0/, or mav0 itself)."),
+    estimator: str = typer.Option("msckf", "--estimator", help="msckf | imu-only | ground-truth."),
+    out: Path = typer.Option(Path("viotb_out/eval"), "--out", help="Output folder for the TUM files."),
+    frontend: str = typer.Option("klt", "--frontend", help="klt (images) | sim (recorded landmarks, fast)."),
+    max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """Run an estimator on a EuRoC folder, write TUM trajectories and print ATE/RPE/NEES/timing."""
+    from viotb.envs.evaluate import EvalOptions, evaluate_dataset
+
+    opts = EvalOptions(estimator=estimator, frontend=frontend, max_frames=max_frames)
+    try:
+        with _progress(f"eval {estimator}", not as_json) as progress:
+            result = evaluate_dataset(dataset, out, opts, progress)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(str(exc))
+    _emit(result, as_json, f"{estimator} on {dataset} -> {out}")
+
+
+@app.command()
+def fly(
+    scenario: str = typer.Argument(..., help="Closed-loop scenario (see `viotb scenarios`)."),
+    estimator: str = typer.Option("msckf", "--estimator", help="msckf | imu-only | ground-truth."),
+    seconds: float | None = typer.Option(None, "--seconds", help="Flight duration (s)."),
+    seed: int = typer.Option(0, "--seed", help="Random seed."),
+    frontend: str = typer.Option("klt", "--frontend", help="klt (rendered images) | sim (fast mode)."),
+    out: Path | None = typer.Option(None, "--out", help="Write plots (PNG) and metrics.json here."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """Fly a closed-loop scenario with the estimator in the loop."""
+    from viotb.envs.fly import fly as run_fly
+
+    if seconds is not None and seconds <= 0:
+        _fail(f"--seconds must be positive, got {seconds}")
+    try:
+        with _progress(f"fly {scenario}", not as_json) as progress:
+            result, log = run_fly(scenario, estimator, seconds, seed, frontend, progress)
+    except ValueError as exc:
+        _fail(str(exc))
+    if out is not None:
+        from viotb.envs.viz import save_plots
+
+        out.mkdir(parents=True, exist_ok=True)
+        result["plots"] = [str(p) for p in save_plots(log, out)]
+        (out / "metrics.json").write_text(json.dumps(result, indent=2, default=float))
+    _emit(result, as_json, f"flew {scenario} on {estimator}")
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("demo_out"), "--out", help="Output folder for plots and demo.rrd."),
+    scenario: str = typer.Option("fly-hover", "--scenario", help="Closed-loop scenario."),
+    seconds: float | None = typer.Option(None, "--seconds", help="Flight duration (s)."),
+    seed: int = typer.Option(0, "--seed", help="Random seed."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """The default closed-loop VIO flight, with PNG plots and a rerun recording."""
+    from viotb.envs.fly import fly as run_fly
+    from viotb.envs.viz import RerunRecorder, save_plots
+
+    out.mkdir(parents=True, exist_ok=True)
+    recorder = RerunRecorder(out / "demo.rrd")
+    try:
+        with _progress(f"demo {scenario}", not as_json) as progress:
+            result, log = run_fly(scenario, "msckf", seconds, seed, "klt", progress, on_tick=recorder)
+    except ValueError as exc:
+        _fail(str(exc))
+    finally:
+        recorder.close()
+    plots = save_plots(log, out)
+    result["recording"] = str(out / "demo.rrd")
+    result["plots"] = [str(p) for p in plots]
+    (out / "metrics.json").write_text(json.dumps(result, indent=2, default=float))
+    if not as_json:
+        _err.print(f"plots: {', '.join(str(p) for p in plots)}")
+        _err.print(f"recording: {out / 'demo.rrd'}  (view with: rerun {out / 'demo.rrd'})")
+    _emit(result, as_json, f"demo {scenario}")
+
+
 def main() -> None:
     """Entry point of the ``viotb`` console script."""
     app()

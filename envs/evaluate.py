@@ -1,7 +1,8 @@
 """Run an estimator over any EuRoC-layout folder (recorded here or real) and measure it.
 
-This is the engine of ``viotb eval``: it replays the IMU and camera streams in timestamp order on the IMU clock,
-times the estimator per frame, writes TUM trajectories and returns the metrics of :mod:`viotb.vio.metrics`.
+This is the engine of ``viotb eval``: it replays the IMU and camera streams in timestamp order on the IMU
+clock, times the estimator per frame, writes TUM trajectories and returns the metrics of
+:mod:`viotb.vio.metrics`.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
 from viotb.envs.euroc import EurocDataset, load_image, read_euroc
 from viotb.envs.tum import write_tum
 from viotb.vio.factory import make_estimator
@@ -44,7 +44,7 @@ class EvalOptions:
 
 
 def _interpolate_pose(gt: TrajectoryArrays, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ground-truth pose at ``t_s`` (linear in position, nearest-sample rotation refined by slerp-free nlerp)."""
+    """Ground-truth pose at ``t_s``: linear in position, normalized lerp of the quaternion."""
     i = int(np.clip(np.searchsorted(gt.t_s, t_s), 1, len(gt) - 1))
     t0, t1 = gt.t_s[i - 1], gt.t_s[i]
     a = float(np.clip((t_s - t0) / (t1 - t0), 0.0, 1.0))
@@ -60,7 +60,9 @@ def _truth_estimate(ds: EurocDataset, t_s: float) -> StateEstimate:
     assert ds.groundtruth is not None
     R_WB, p_WB = _interpolate_pose(ds.groundtruth, t_s)
     v = ds.groundtruth.v_WB
-    v_WB = np.zeros(3) if v is None else v[int(np.clip(np.searchsorted(ds.groundtruth.t_s, t_s), 0, len(v) - 1))]
+    v_WB = (
+        np.zeros(3) if v is None else v[int(np.clip(np.searchsorted(ds.groundtruth.t_s, t_s), 0, len(v) - 1))]
+    )
     return StateEstimate(t_s=t_s, R_WB=R_WB, p_WB=p_WB, v_WB=v_WB)
 
 
@@ -89,7 +91,8 @@ def run_estimator(
     """Replay a dataset through an estimator.
 
     Returns:
-        Estimates at each processed frame (after initialization), per-frame wall time (ms), and per-frame health
+        Estimates at each processed frame (after initialization), per-frame wall time (ms), and per-frame
+        health
         records (dicts with t_s, tracked_features, updated_features, chi2_rejections, diverged, reason).
     """
     est = make_estimator(opts.estimator, ds.calib, ds.imu_noise, frontend=opts.frontend)

@@ -1,0 +1,286 @@
+"""Lockstep closed-loop core: physics, IMU, camera and estimator advanced together in timestamp order.
+
+One :class:`ClosedLoopSim` owns a :class:`~viotb.envs.sim.Simulation`, the IMU and camera sensor models, an
+offscreen renderer (image front end) or the landmark projector (``sim`` fast mode), and an estimator chosen by
+name. Callers (the ``viotb fly`` runner and the Gymnasium envs) hold motor thrusts for one control period with
+:meth:`ClosedLoopSim.advance`; inside it:
+
+1. physics steps at the model's timestep (``<option timestep>``);
+2. every IMU period the noiseless gyro/accelerometer of the ``imu`` site go through the IMU model and the
+   sample is fed to the estimator (and logged);
+3. at each camera exposure time (IMU clock) the camera is rendered and its frame, stamped on the camera clock
+   (``t_cam = t_imu - time_offset_s``), is queued; it reaches the estimator ``latency_s`` later, after every
+   IMU sample up to its arrival time;
+4. external wind force is applied to the body.
+
+Nothing of the truth reaches the estimator: only IMU samples and camera frames (the ``ground-truth`` estimator
+is the explicit exception, fed truth for fast policy training).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+from viotb.envs.camera_model import CameraModelParams
+from viotb.envs.imu_model import ImuModel, imu_preset
+from viotb.envs.render import OffscreenRenderer, camera_calibration
+from viotb.envs.sim import Simulation
+from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
+from viotb.vio.factory import make_estimator
+from viotb.vio.types import CameraFrame, HealthStatus, ImuSample, StateEstimate
+
+
+@dataclass(frozen=True)
+class WindParams:
+    """Wind gusts as a horizontal force on the body: a seeded Ornstein-Uhlenbeck process plus a mean.
+
+    Attributes:
+        mean_force_W_N: Constant force (N), shape (3,).
+        gust_sigma_N: Stationary standard deviation of the gust force per horizontal axis (N).
+        gust_time_constant_s: Correlation time of the gusts (s).
+    """
+
+    mean_force_W_N: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gust_sigma_N: float = 0.0
+    gust_time_constant_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """Everything that defines the simulated rig of a closed-loop run.
+
+    Attributes:
+        scene: Scene name (``viotb.models.constants.SCENE_XMLS``).
+        estimator: ``msckf``, ``imu-only`` or ``ground-truth``.
+        frontend: ``klt`` (OpenCV on rendered images) or ``sim`` (projected landmarks, fast mode).
+        imu_preset: IMU model preset name (``viotb.envs.imu_model``).
+        camera: Camera model (rate, resolution, clock offset, latency, drops, blackouts, pixel noise).
+        start_p_W_m: Start position of the body on the ground (m), shape (3,).
+        start_yaw_rad: Start heading (rad).
+        wind: Wind gusts.
+        sim_pixel_sigma_px: Pixel noise of the ``sim`` front end (px).
+        render_images: Render the onboard camera even in ``sim`` mode (for image observations / recordings).
+    """
+
+    scene: str = "textured_room"
+    estimator: str = "msckf"
+    frontend: str = "klt"
+    imu_preset: str = "adis16448"
+    camera: CameraModelParams = field(default_factory=CameraModelParams)
+    start_p_W_m: tuple[float, float, float] = (0.0, 0.0, 0.06)
+    start_yaw_rad: float = 0.0
+    wind: WindParams = field(default_factory=WindParams)
+    sim_pixel_sigma_px: float = 0.5
+    render_images: bool = False
+
+
+@dataclass(frozen=True)
+class TruthState:
+    """Ground truth of the body (for logging, metrics and ``info`` only).
+
+    Attributes:
+        t_s: Time (s).
+        R_WB: shape (3, 3).
+        p_WB: (m), shape (3,).
+        v_WB: (m/s), shape (3,).
+        omega_B: (rad/s), shape (3,).
+    """
+
+    t_s: float
+    R_WB: np.ndarray
+    p_WB: np.ndarray
+    v_WB: np.ndarray
+    omega_B: np.ndarray
+
+
+def _rotz(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class ClosedLoopSim:
+    """The lockstep rig (see the module docstring).
+
+    Args:
+        config: The rig.
+        seed: Seeds every random component (IMU noise and biases, pixel noise, drops, wind).
+        max_duration_s: Longest run this instance will simulate (sizes the camera schedule).
+
+    Raises:
+        ValueError: Unknown scene, estimator, front end or preset; IMU/camera periods that are not whole
+            multiples of the physics timestep.
+    """
+
+    def __init__(self, config: RigConfig, seed: int = 0, max_duration_s: float = 600.0) -> None:
+        """Build the simulation, sensors, renderer and estimator."""
+        if config.frontend not in ("klt", "sim"):
+            raise ValueError(f"unknown front end {config.frontend!r}; allowed: 'klt', 'sim'")
+        self.config = config
+        self.sim = Simulation("quadrotor", config.scene)
+        rng = np.random.default_rng(seed)
+        self._rng_imu, self._rng_pix, self._rng_cam, self._rng_wind, self._rng_lm = rng.spawn(5)
+        dt = self.sim.timestep_s
+        imu_params = imu_preset(config.imu_preset)
+        self.imu_model = ImuModel(imu_params, self._rng_imu)
+        self._imu_every = self._steps_per_period(1.0 / imu_params.rate_hz, "IMU", dt)
+        self._cam_every = self._steps_per_period(1.0 / config.camera.rate_hz, "camera", dt)
+        cam = config.camera
+        self.calib = camera_calibration(
+            self.sim.model, ONBOARD_CAMERA, QUAD_BODY, cam.width, cam.height, cam.time_offset_s, cam.rate_hz
+        )
+        self.estimator = make_estimator(
+            config.estimator, self.calib, imu_params.noise, frontend=config.frontend
+        )
+        need_images = config.frontend == "klt" or config.render_images
+        self.renderer = (
+            OffscreenRenderer(
+                self.sim.model, cam.width, cam.height, ONBOARD_CAMERA, cam.pixel_noise_std, self._rng_pix
+            )
+            if need_images
+            else None
+        )
+        self.landmarks_W = None
+        if config.frontend == "sim":
+            from viotb.envs.landmarks import scene_landmarks
+
+            self.landmarks_W = scene_landmarks(self.sim.model, self._rng_lm)
+        self._blackouts = tuple(cam.blackout_intervals_s)
+        self._body_id = self.sim.model.body(QUAD_BODY).id
+        self._bounds = SCENE_BOUNDS_M.get(config.scene)
+        self._pending: deque[tuple[float, CameraFrame]] = deque()
+        self._wind_gust_W = np.zeros(3)
+        self._step_count = 0
+        self.last_frame: CameraFrame | None = None
+        self.last_imu: ImuSample | None = None
+        self.frames_delivered = 0
+        self.frames_dropped = 0
+        self._place_on_ground()
+
+    @staticmethod
+    def _steps_per_period(period_s: float, what: str, dt: float) -> int:
+        n = round(period_s / dt)
+        if n < 1 or abs(n * dt - period_s) > 1e-9:
+            raise ValueError(
+                f"{what} period {period_s} s is not a whole multiple of the physics timestep {dt} s"
+            )
+        return n
+
+    def _place_on_ground(self) -> None:
+        self.sim.reset(None)
+        self.sim.set_pose(_rotz(self.config.start_yaw_rad), np.asarray(self.config.start_p_W_m, dtype=float))
+        self.sim.data.ctrl[:] = 0.0
+        mujoco.mj_forward(self.sim.model, self.sim.data)
+
+    # ------------------------------------------------------------------ readers
+
+    @property
+    def t_s(self) -> float:
+        """Simulation time (s) = IMU clock."""
+        return self.sim.time_s
+
+    def truth(self) -> TruthState:
+        """Ground truth now (never fed to an estimator other than ``ground-truth``)."""
+        R_WB, p_WB = self.sim.pose()
+        return TruthState(self.t_s, R_WB, p_WB, self.sim.velocity_W(), self.sim.angular_velocity_B())
+
+    def estimate(self) -> StateEstimate | None:
+        """The estimator's latest state (propagated to the newest IMU sample), or None before init."""
+        return self.estimator.estimate()
+
+    def health(self) -> HealthStatus:
+        """The estimator's health."""
+        return self.estimator.health()
+
+    def crashed(self, airborne: bool) -> bool:
+        """Crash test: contact once airborne, tilt beyond 80 deg, or leaving the scene bounds."""
+        R_WB, p_WB = self.sim.pose()
+        if R_WB[2, 2] < np.cos(np.deg2rad(80.0)):
+            return True
+        if self._bounds is not None:
+            lo, hi = np.asarray(self._bounds[0]), np.asarray(self._bounds[1])
+            if np.any(p_WB < lo - 0.5) or np.any(p_WB > hi + 0.5):
+                return True
+        return airborne and self.sim.in_collision()
+
+    # ------------------------------------------------------------------ stepping
+
+    def _in_blackout(self, t: float) -> bool:
+        return any(a <= t < b for a, b in self._blackouts)
+
+    def _capture(self, t_exposure: float) -> None:
+        """Render / project a frame at the current state, queue it for delivery after the latency."""
+        cam = self.config.camera
+        if self._in_blackout(t_exposure) or self._rng_cam.random() < cam.drop_probability:
+            self.frames_dropped += 1
+            return
+        t_cam = t_exposure - cam.time_offset_s
+        image = self.renderer.render_gray(self.sim.data) if self.renderer is not None else None
+        features = None
+        if self.config.frontend == "sim":
+            from viotb.envs.landmarks import project_landmarks
+
+            R_WC, p_WC = self.sim.camera_pose()
+            features = project_landmarks(
+                self.landmarks_W, R_WC, p_WC, self.calib.camera, self._rng_pix, self.config.sim_pixel_sigma_px
+            )
+        self._pending.append(
+            (t_exposure + cam.latency_s, CameraFrame(t_s=t_cam, image=image, features=features))
+        )
+
+    def _deliver_frames(self) -> None:
+        while self._pending and self._pending[0][0] <= self.t_s + 1e-12:
+            _, frame = self._pending.popleft()
+            if self.config.estimator == "ground-truth":
+                self._feed_truth()
+            self.estimator.feed_camera(frame)
+            self.last_frame = frame
+            self.frames_delivered += 1
+
+    def _feed_truth(self) -> None:
+        tr = self.truth()
+        self.estimator.feed_truth(  # type: ignore[attr-defined]
+            StateEstimate(t_s=tr.t_s, R_WB=tr.R_WB, p_WB=tr.p_WB, v_WB=tr.v_WB, omega_B_rad_s=tr.omega_B)
+        )
+
+    def _apply_wind(self, dt: float) -> None:
+        w = self.config.wind
+        if w.gust_sigma_N > 0.0:
+            a = np.exp(-dt / w.gust_time_constant_s)
+            noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * np.sqrt(1.0 - a * a)
+            noise[2] = 0.0
+            self._wind_gust_W = a * self._wind_gust_W + noise
+        self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
+
+    def advance(self, thrusts_N: np.ndarray, duration_s: float) -> None:
+        """Hold motor thrusts for ``duration_s`` (rounded to physics steps), running sensors and estimator.
+
+        Args:
+            thrusts_N: Motor thrusts (N), shape (4,); MuJoCo clips them to the actuators' ctrlrange.
+            duration_s: Time to advance (s), at least one physics step.
+        """
+        dt = self.sim.timestep_s
+        n = max(1, round(duration_s / dt))
+        for _ in range(n):
+            self._apply_wind(dt)
+            self.sim.step(thrusts_N, 1)
+            self._step_count += 1
+            if self._step_count % self._imu_every == 0:
+                sample = self.imu_model.measure(
+                    self.t_s, self.sim.angular_velocity_B(), self.sim.specific_force_B()
+                )
+                self.last_imu = sample
+                if self.config.estimator == "ground-truth":
+                    self._feed_truth()
+                self.estimator.feed_imu(sample)
+            if self._step_count % self._cam_every == 0:
+                self._capture(self.t_s)
+            self._deliver_frames()
+
+    def close(self) -> None:
+        """Release the GL context."""
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
