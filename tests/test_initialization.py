@@ -1,0 +1,196 @@
+"""Tests of vio/initialization.py: static init (synthetic, real EuRoC), dynamic visual-inertial alignment."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from viotb.vio.camera import CameraCalibration, PinholeCamera
+from viotb.vio.initialization import InertialInitializer, InitParams, rotation_from_gravity
+from viotb.vio.lie import log_so3, quat_wxyz_to_rotmat
+from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample, gravity_W
+
+EUROC = Path("/work/shared/data/euroc_v1_01_micro/mav0")
+IMU_RATE_HZ = 200.0
+CAM_RATE_HZ = 20.0
+# Camera looks along body +x: x_C = -y_B, y_C = -z_B, z_C = +x_B.
+R_BC = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+P_BC = np.array([0.05, -0.02, 0.01])
+CALIB = CameraCalibration(PinholeCamera.from_fovy(640, 480, 70.0), R_BC, P_BC)
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.rad2deg(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1.0, 1.0))))
+
+
+# ----------------------------------------------------------------------------------------- static
+def test_rotation_from_gravity_levels_and_zero_yaw():
+    rng = np.random.default_rng(0)
+    for up in rng.normal(size=(20, 3)):
+        R = rotation_from_gravity(up)
+        np.testing.assert_allclose(R.T @ [0.0, 0.0, 1.0], up / np.linalg.norm(up), atol=1e-12)
+        assert abs(R[1, 0]) < 1e-12 and R[0, 0] >= 0.0  # yaw 0
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    with pytest.raises(ValueError, match="up_B"):
+        rotation_from_gravity(np.zeros(3))
+
+
+def test_static_init_on_synthetic_still_imu():
+    rng = np.random.default_rng(0)
+    noise = ImuNoise()
+    R_WB_true = Rotation.from_euler("ZYX", [1.0, 0.15, -0.1]).as_matrix()
+    bg_true = np.array([0.003, -0.02, 0.01])
+    f_B = R_WB_true.T @ (-gravity_W())
+    dt = 1.0 / IMU_RATE_HZ
+    sg = noise.gyro_noise_density_rad_s_sqrthz / np.sqrt(dt)
+    sa = noise.accel_noise_density_m_s2_sqrthz / np.sqrt(dt)
+    init = InertialInitializer(CALIB, noise, InitParams(window_s=1.0))
+    assert init.try_initialize() is None and "waiting" in init.last_failure
+    n = 400
+    for k in range(n):
+        init.feed_imu(ImuSample(k * dt, bg_true + sg * rng.normal(size=3), f_B + sa * rng.normal(size=3)))
+    assert init.is_still()
+    res = init.try_initialize()
+    assert res is not None and res.method == "static"
+    # Tilt: angle between the estimated and true "up" in B within 0.1 deg.
+    assert _angle_deg(res.R_WB.T @ [0, 0, 1], R_WB_true.T @ [0, 0, 1]) < 0.1
+    # Gyro bias within 4 sigma of the mean of ~200 samples.
+    assert np.all(np.abs(res.gyro_bias_rad_s - bg_true) < 4 * sg / np.sqrt(200))
+    np.testing.assert_array_equal(res.v_WB, 0.0)
+    assert res.gravity_norm_m_s2 == pytest.approx(GRAVITY_M_S2, abs=0.01)
+    assert res.cov_diag.shape == (15,) and np.all(res.cov_diag > 0.0)
+
+
+def _load_euroc_window(t0: float, t1: float):
+    imu = np.loadtxt(EUROC / "imu0" / "data.csv", delimiter=",", comments="#")
+    gt = np.loadtxt(EUROC / "state_groundtruth_estimate0" / "data.csv", delimiter=",", comments="#")
+    t_imu = imu[:, 0] * 1e-9
+    t_gt = gt[:, 0] * 1e-9
+    sel_imu = (t_imu >= t0) & (t_imu <= t1)
+    sel_gt = (t_gt >= t0) & (t_gt <= t1)
+    return t_imu[sel_imu], imu[sel_imu], gt[sel_gt]
+
+
+@pytest.mark.skipif(not EUROC.exists(), reason="EuRoC micro dataset not present")
+def test_static_init_on_real_euroc_micro():
+    t0, t1 = 1403715273.262, 1403715277.95
+    t_imu, imu, gt = _load_euroc_window(t0, t1)
+    init = InertialInitializer(CALIB, ImuNoise(), InitParams(window_s=t1 - t0 - 0.01))
+    for t, row in zip(t_imu, imu, strict=True):
+        init.feed_imu(ImuSample(float(t), row[1:4], row[4:7]))
+    res = init.try_initialize()
+    assert res is not None, init.last_failure
+    assert res.method == "static"
+    assert res.gravity_norm_m_s2 == pytest.approx(GRAVITY_M_S2, abs=0.1)
+    # Roll/pitch: the world up axis seen in B, estimated vs ground truth (q_RS_wxyz columns 4..7).
+    up_B_est = res.R_WB.T @ [0.0, 0.0, 1.0]
+    for q in gt[:, 4:8]:
+        assert _angle_deg(up_B_est, quat_wxyz_to_rotmat(q).T @ [0.0, 0.0, 1.0]) < 1.0
+    np.testing.assert_allclose(res.gyro_bias_rad_s, gt[:, 11:14].mean(axis=0), atol=2e-3)
+
+
+# ---------------------------------------------------------------------------------------- dynamic
+def _truth(t: np.ndarray, excited: bool):
+    """Position (m), velocity, acceleration (m/s^2) in W and R_WB for an excited or constant-velocity path."""
+    t = np.atleast_1d(t)
+    v_const = np.array([0.8, 0.1, 0.05])
+    if not excited:
+        p = v_const * t[:, None]
+        return p, np.tile(v_const, (t.size, 1)), np.zeros((t.size, 3)), np.stack([np.eye(3)] * t.size)
+    amp = np.array([0.6, 0.5, 0.3])
+    w = np.array([2.2, 1.7, 2.6])
+    ph = np.array([0.0, 0.4, 1.0])
+    p = v_const * t[:, None] + amp * np.sin(w * t[:, None] + ph)
+    v = v_const + amp * w * np.cos(w * t[:, None] + ph)
+    a = -amp * w**2 * np.sin(w * t[:, None] + ph)
+    eul = np.column_stack([0.3 * np.sin(1.1 * t), 0.2 * np.sin(1.4 * t + 0.3), 0.25 * np.sin(0.9 * t + 1.0)])
+    R = Rotation.from_euler("ZYX", eul).as_matrix()
+    return p, v, a, R
+
+
+def _imu_samples(t_end: float, excited: bool, bg: np.ndarray) -> list[ImuSample]:
+    """Noise-free IMU at 200 Hz; each reading is the mid-interval value of its zero-order-hold interval."""
+    dt = 1.0 / IMU_RATE_HZ
+    out = []
+    for t in np.arange(0.0, t_end + 1e-9, dt):
+        tm = t + 0.5 * dt
+        _, _, a, R = _truth(np.array([tm]), excited)
+        _, _, _, R0 = _truth(np.array([t]), excited)
+        _, _, _, R1 = _truth(np.array([t + dt]), excited)
+        gyro = log_so3(R0[0].T @ R1[0]) / dt  # exact rotation over the interval
+        accel = R[0].T @ (a[0] - gravity_W())
+        out.append(ImuSample(float(t), gyro + bg, accel))
+    return out
+
+
+def _feed_synthetic(init: InertialInitializer, t_end: float, excited: bool, bg: np.ndarray, rng):
+    landmarks_W = np.column_stack(
+        [rng.uniform(4.0, 8.0, 150), rng.uniform(-4.0, 4.0, 150), rng.uniform(-2.0, 3.0, 150)]
+    )
+    imu = _imu_samples(t_end, excited, bg)
+    frame_times = np.arange(0.0, t_end + 1e-9, 1.0 / CAM_RATE_HZ)
+    fi = 0
+    for s in imu:
+        init.feed_imu(s)
+        while fi < frame_times.size and frame_times[fi] <= s.t_s + 1e-12:
+            p, _, _, R = _truth(np.array([frame_times[fi]]), excited)
+            R_WC = R[0] @ R_BC
+            p_WC = p[0] + R[0] @ P_BC
+            p_C = (landmarks_W - p_WC) @ R_WC
+            xy = p_C[:, :2] / p_C[:, 2:3]
+            ok = (p_C[:, 2] > 0.5) & (np.abs(xy[:, 0]) < 0.7) & (np.abs(xy[:, 1]) < 0.5)
+            noisy = xy[ok] + (0.5 / CALIB.camera.fx) * rng.normal(size=(int(ok.sum()), 2))  # 0.5 px
+            init.feed_features(float(frame_times[fi]), np.flatnonzero(ok), noisy)
+            fi += 1
+
+
+def test_dynamic_init_recovers_velocity_gravity_scale_and_gyro_bias():
+    rng = np.random.default_rng(0)
+    bg_true = np.array([0.01, -0.015, 0.02])
+    t_end = 1.5
+    init = InertialInitializer(CALIB, ImuNoise(), InitParams(window_s=1.5))
+    _feed_synthetic(init, t_end, True, bg_true, rng)
+    assert not init.is_still()
+    assert init.excitation_m_s2() > 1.0
+    res = init.try_initialize()
+    assert res is not None, init.last_failure
+    assert res.method == "dynamic"
+    t_last = res.t_s
+    _, v_true, _, R_true = _truth(np.array([t_last]), True)
+    # Velocity in the true body frame (frame-independent of the yaw gauge) within 5 %.
+    v_B_est = res.R_WB.T @ res.v_WB
+    v_B_true = R_true[0].T @ v_true[0]
+    assert np.linalg.norm(v_B_est - v_B_true) < 0.05 * np.linalg.norm(v_B_true)
+    # Scale: velocity norm within 2 %.
+    assert abs(np.linalg.norm(res.v_WB) / np.linalg.norm(v_true[0]) - 1.0) < 0.02
+    # Gravity direction in B within 1 deg.
+    assert _angle_deg(res.R_WB.T @ [0, 0, 1], R_true[0].T @ [0, 0, 1]) < 1.0
+    # Gyro bias refined by the Gauss-Newton step.
+    np.testing.assert_allclose(res.gyro_bias_rad_s, bg_true, atol=3e-3)
+    assert res.gravity_norm_m_s2 == pytest.approx(GRAVITY_M_S2, rel=0.05)
+
+
+def test_dynamic_init_returns_none_on_constant_velocity():
+    rng = np.random.default_rng(0)
+    init = InertialInitializer(CALIB, ImuNoise(), InitParams(window_s=1.5))
+    _feed_synthetic(init, 1.5, False, np.zeros(3), rng)
+    assert not init.is_still()  # features move: parallax rules out "still"
+    assert init.try_initialize() is None
+    assert "excitation" in init.last_failure
+
+
+def test_dynamic_init_returns_none_without_features():
+    init = InertialInitializer(CALIB, ImuNoise(), InitParams(window_s=1.5, still_max_disparity=-1.0))
+    for s in _imu_samples(1.5, True, np.zeros(3)):
+        init.feed_imu(s)
+    assert init.try_initialize() is None
+    assert "features" in init.last_failure
+
+
+def test_bad_input_errors():
+    init = InertialInitializer(CALIB)
+    init.feed_imu(ImuSample(1.0, np.zeros(3), np.array([0, 0, 9.81])))
+    with pytest.raises(ValueError, match="t_s"):
+        init.feed_imu(ImuSample(0.5, np.zeros(3), np.array([0, 0, 9.81])))
+    with pytest.raises(ValueError, match="xy_norm"):
+        init.feed_features(1.0, np.arange(3), np.zeros((2, 2)))
