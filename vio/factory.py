@@ -1,0 +1,45 @@
+"""Build estimators by name (the names of DESIGN.md's CLI contract)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from viotb.vio.baselines import GroundTruthEstimator, ImuOnlyEstimator
+from viotb.vio.camera import CameraCalibration
+from viotb.vio.msckf import MsckfEstimator, MsckfParams
+from viotb.vio.types import Estimator, ImuNoise
+
+ESTIMATOR_NAMES = ("msckf", "imu-only", "ground-truth")
+FRONTEND_NAMES = ("klt", "sim")
+
+
+def make_estimator(
+    name: str,
+    calib: CameraCalibration,
+    noise: ImuNoise,
+    *,
+    frontend: str = "klt",
+    params: MsckfParams | None = None,
+) -> Estimator:
+    """Create the estimator ``name`` (one of :data:`ESTIMATOR_NAMES`).
+
+    Args:
+        name: Estimator name.
+        calib: Camera calibration.
+        noise: IMU noise densities.
+        frontend: ``"klt"`` or ``"sim"`` (MSCKF only; overrides ``params.frontend``).
+        params: MSCKF settings.
+
+    Raises:
+        ValueError: for an unknown name or front end, listing the allowed ones.
+    """
+    if frontend not in FRONTEND_NAMES:
+        raise ValueError(f"unknown front end {frontend!r}; allowed: {', '.join(FRONTEND_NAMES)}")
+    if name == "msckf":
+        p = params if params is not None else MsckfParams()
+        return MsckfEstimator(calib, noise, replace(p, frontend=frontend))
+    if name == "imu-only":
+        return ImuOnlyEstimator(calib, noise)
+    if name == "ground-truth":
+        return GroundTruthEstimator(calib, noise)
+    raise ValueError(f"unknown estimator {name!r}; allowed: {', '.join(ESTIMATOR_NAMES)}")

@@ -1,0 +1,386 @@
+"""Feature front ends and the feature database (open_vins ``TrackKLT`` / ``TrackSIM`` / ``FeatureDatabase``).
+
+Both front ends implement one small interface, ``process(frame, t_imu_s) -> Tracks``:
+
+- :class:`KltTracker` works on images: FAST corners with grid bucketing, pyramidal Lucas-Kanade
+  (``cv2.calcOpticalFlowPyrLK``) with a forward-backward check, and RANSAC on the fundamental matrix of the
+  undistorted points (``cv2.findFundamentalMat``).
+- :class:`SimFeatureTracker` is the fast mode: it takes the simulated projections ``frame.features``.
+
+Observations leave the front end as undistorted normalized coordinates. :class:`FeatureDatabase` stores them
+per clone time in fixed arrays and answers time-based queries.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+from viotb.vio.camera import PinholeCamera
+from viotb.vio.types import CameraFrame
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """Feature observations of one frame.
+
+    Attributes:
+        t_cam_s: Camera timestamp (s).
+        t_imu_s: The same instant on the IMU clock (s).
+        ids: Track ids, shape (M,), int64.
+        xy_norm: Undistorted normalized coordinates, shape (M, 2).
+        uv_px: Measured (distorted) pixels, shape (M, 2).
+    """
+
+    t_cam_s: float
+    t_imu_s: float
+    ids: np.ndarray
+    xy_norm: np.ndarray
+    uv_px: np.ndarray
+
+    def __len__(self) -> int:
+        """Number of observations."""
+        return int(self.ids.shape[0])
+
+    @staticmethod
+    def empty(t_cam_s: float, t_imu_s: float) -> Tracks:
+        """A frame without observations."""
+        return Tracks(t_cam_s, t_imu_s, np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+class FrontEnd(Protocol):
+    """What the MSCKF needs from a front end."""
+
+    def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
+        """Track features in ``frame`` and return this frame's observations."""
+
+
+@dataclass(frozen=True)
+class KltParams:
+    """KLT tracker settings (sizes for 320x240; scale with the image).
+
+    Attributes:
+        max_features: Target number of tracked features.
+        grid_cols: Bucketing grid columns.
+        grid_rows: Bucketing grid rows.
+        fast_threshold: FAST intensity threshold (gray levels).
+        min_distance_px: Minimum distance (px) between a new corner and any tracked feature.
+        win_size_px: Lucas-Kanade window side (px).
+        pyramid_levels: Extra pyramid levels.
+        fb_max_error_px: Largest forward-backward error (px).
+        ransac_threshold_px: RANSAC epipolar threshold (px, on undistorted points scaled by the focal length).
+        ransac_confidence: RANSAC confidence.
+        border_px: Features closer than this to the border (px) are dropped.
+    """
+
+    max_features: int = 180
+    grid_cols: int = 8
+    grid_rows: int = 6
+    fast_threshold: int = 15
+    min_distance_px: float = 10.0
+    win_size_px: int = 15
+    pyramid_levels: int = 3
+    fb_max_error_px: float = 1.0
+    ransac_threshold_px: float = 1.0
+    ransac_confidence: float = 0.99
+    border_px: float = 3.0
+
+
+class KltTracker:
+    """Image front end: FAST + grid bucketing, pyramidal KLT with forward-backward check, F-matrix RANSAC.
+
+    Args:
+        camera: Intrinsics (image size and distortion).
+        params: Settings.
+    """
+
+    def __init__(self, camera: PinholeCamera, params: KltParams | None = None) -> None:
+        """Create a tracker with no history."""
+        self.camera = camera
+        self.params = params if params is not None else KltParams()
+        self._fast = cv2.FastFeatureDetector_create(
+            threshold=self.params.fast_threshold, nonmaxSuppression=True
+        )
+        self._prev_img: np.ndarray | None = None
+        self._prev_pts = np.zeros((0, 2), dtype=np.float32)
+        self._prev_ids = np.zeros(0, dtype=np.int64)
+        self._next_id = 0
+        self._focal_px = 0.5 * (camera.fx + camera.fy)
+
+    def _check_image(self, image: np.ndarray) -> np.ndarray:
+        img = np.asarray(image)
+        if img.ndim == 3 and img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+        expected = (self.camera.height, self.camera.width)
+        if img.ndim != 2 or img.shape != expected:
+            raise ValueError(
+                f"KltTracker: image shape {img.shape} does not match the camera ({expected[0]}x{expected[1]} "
+                "rows x cols, grayscale)"
+            )
+        if img.dtype != np.uint8:
+            raise ValueError(f"KltTracker: image dtype must be uint8, got {img.dtype}")
+        return img
+
+    def reset(self) -> None:
+        """Forget the previous frame (all tracks end)."""
+        self._prev_img = None
+        self._prev_pts = np.zeros((0, 2), dtype=np.float32)
+        self._prev_ids = np.zeros(0, dtype=np.int64)
+
+    def _track(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """KLT from the previous frame with forward-backward check and RANSAC; returns (pts, ids)."""
+        p = self.params
+        if self._prev_img is None or len(self._prev_pts) == 0:
+            return np.zeros((0, 2), dtype=np.float32), np.zeros(0, dtype=np.int64)
+        lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels}
+        p0 = self._prev_pts.reshape(-1, 1, 2)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, None, **lk)
+        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1, None, **lk)
+        p1 = p1.reshape(-1, 2)
+        fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts, axis=1)
+        good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_error_px)
+        good &= self.camera.in_image(p1.astype(float), p.border_px)
+        pts, ids, prev = p1[good], self._prev_ids[good], self._prev_pts[good]
+        if len(pts) >= 8:
+            a = self.camera.undistort_points(prev.astype(float)) * self._focal_px
+            b = self.camera.undistort_points(pts.astype(float)) * self._focal_px
+            _, inl = cv2.findFundamentalMat(
+                a, b, cv2.FM_RANSAC, p.ransac_threshold_px, p.ransac_confidence
+            )
+            if inl is not None:
+                keep = inl.ravel().astype(bool)
+                pts, ids = pts[keep], ids[keep]
+        return pts, ids
+
+    def _detect(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        """New FAST corners, bucketed on a grid and away from tracked points, shape (N, 2) float32."""
+        p = self.params
+        need = p.max_features - len(pts)
+        if need <= 0:
+            return np.zeros((0, 2), dtype=np.float32)
+        kps = self._fast.detect(img, None)
+        if not kps:
+            return np.zeros((0, 2), dtype=np.float32)
+        cand = np.array([kp.pt for kp in kps], dtype=np.float32)
+        resp = np.array([kp.response for kp in kps], dtype=np.float32)
+        h, w = img.shape
+        inside = self.camera.in_image(cand.astype(float), p.border_px + 4)
+        # Occupancy at min_distance resolution: reject candidates whose cell (or a neighbour) holds a feature.
+        cell = max(p.min_distance_px, 1.0)
+        gw, gh = int(np.ceil(w / cell)) + 2, int(np.ceil(h / cell)) + 2
+        occ = np.zeros((gh, gw), dtype=bool)
+        if len(pts):
+            ci = np.clip((pts[:, 0] / cell).astype(int) + 1, 1, gw - 2)
+            cj = np.clip((pts[:, 1] / cell).astype(int) + 1, 1, gh - 2)
+            for dj in (-1, 0, 1):
+                for di in (-1, 0, 1):
+                    occ[cj + dj, ci + di] = True
+        ki = np.clip((cand[:, 0] / cell).astype(int) + 1, 0, gw - 1)
+        kj = np.clip((cand[:, 1] / cell).astype(int) + 1, 0, gh - 1)
+        ok = inside & ~occ[kj, ki]
+        cand, resp, ki, kj = cand[ok], resp[ok], ki[ok], kj[ok]
+        if len(cand) == 0:
+            return np.zeros((0, 2), dtype=np.float32)
+        # One corner per occupancy cell (the strongest), then a per-bucket quota.
+        order = np.lexsort((-resp, kj * gw + ki))
+        cell_id = (kj * gw + ki)[order]
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = cell_id[1:] != cell_id[:-1]
+        sel = order[first]
+        cand, resp = cand[sel], resp[sel]
+        bx = np.clip((cand[:, 0] * p.grid_cols / w).astype(int), 0, p.grid_cols - 1)
+        by = np.clip((cand[:, 1] * p.grid_rows / h).astype(int), 0, p.grid_rows - 1)
+        bucket = by * p.grid_cols + bx
+        n_buckets = p.grid_cols * p.grid_rows
+        quota = int(np.ceil(p.max_features / n_buckets))
+        have = np.zeros(n_buckets, dtype=int)
+        if len(pts):
+            tbx = np.clip((pts[:, 0] * p.grid_cols / w).astype(int), 0, p.grid_cols - 1)
+            tby = np.clip((pts[:, 1] * p.grid_rows / h).astype(int), 0, p.grid_rows - 1)
+            have = np.bincount(tby * p.grid_cols + tbx, minlength=n_buckets)
+        order = np.lexsort((-resp, bucket))
+        b_sorted = bucket[order]
+        starts = np.searchsorted(b_sorted, np.arange(n_buckets))
+        rank = np.arange(len(order)) - starts[b_sorted]
+        take = order[rank < np.maximum(quota - have[b_sorted], 0)]
+        take = take[np.argsort(-resp[take])][:need]
+        return cand[take]
+
+    def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
+        """Track into ``frame.image``; an absent/empty or featureless image yields zero tracks.
+
+        Raises:
+            ValueError: if the image size or type does not match the camera.
+        """
+        if frame.image is None or np.asarray(frame.image).size == 0:
+            self.reset()
+            return Tracks.empty(frame.t_s, t_imu_s)
+        img = self._check_image(frame.image)
+        pts, ids = self._track(img)
+        new = self._detect(img, pts)
+        if len(new):
+            new_ids = np.arange(self._next_id, self._next_id + len(new), dtype=np.int64)
+            self._next_id += len(new)
+            pts = np.vstack([pts, new]).astype(np.float32)
+            ids = np.concatenate([ids, new_ids])
+        self._prev_img, self._prev_pts, self._prev_ids = img, pts.astype(np.float32), ids
+        uv = pts.astype(float)
+        return Tracks(frame.t_s, t_imu_s, ids, self.camera.undistort_points(uv), uv)
+
+
+class SimFeatureTracker:
+    """Fast mode: uses the simulated projections in ``frame.features`` (no image processing).
+
+    Args:
+        camera: Intrinsics used to undistort the pixels.
+    """
+
+    def __init__(self, camera: PinholeCamera) -> None:
+        """Create the tracker."""
+        self.camera = camera
+
+    def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
+        """Observations of ``frame.features`` (zero tracks when it is None or empty)."""
+        obs = frame.features
+        if obs is None or len(obs.ids) == 0:
+            return Tracks.empty(frame.t_s, t_imu_s)
+        uv = np.asarray(obs.uv_px, dtype=float).reshape(-1, 2)
+        ids = np.asarray(obs.ids, dtype=np.int64).ravel()
+        if len(ids) != len(uv):
+            raise ValueError(f"SimFeatureTracker: {len(ids)} ids but {len(uv)} uv_px rows")
+        ok = np.all(np.isfinite(uv), axis=1)
+        return Tracks(frame.t_s, t_imu_s, ids[ok], self.camera.undistort_points(uv[ok]), uv[ok])
+
+
+class FeatureDatabase:
+    """Observations per (frame time, feature id) in fixed arrays.
+
+    Frames are keyed by camera time (the clone key). Storage: ``slot x column`` arrays where a column
+    holds one feature id; columns and slots are recycled.
+
+    Args:
+        max_frames: Frame slots (the clone window plus slack).
+        initial_features: Initial column capacity (doubles when full).
+    """
+
+    def __init__(self, max_frames: int, initial_features: int = 512) -> None:
+        """Create an empty database."""
+        self._slot_t = np.full(max_frames, np.nan)
+        self._xy = np.zeros((max_frames, initial_features, 2))
+        self._has = np.zeros((max_frames, initial_features), dtype=bool)
+        self._col_id = np.full(initial_features, -1, dtype=np.int64)
+        self._id_to_col: dict[int, int] = {}
+
+    @property
+    def frame_times(self) -> np.ndarray:
+        """Stored frame times (s), sorted, shape (S,)."""
+        t = self._slot_t[np.isfinite(self._slot_t)]
+        return np.sort(t)
+
+    def _slot_of(self, t_s: float) -> int | None:
+        hit = np.nonzero(self._slot_t == t_s)[0]
+        return int(hit[0]) if len(hit) else None
+
+    def _grow(self) -> None:
+        c = self._col_id.shape[0]
+        self._xy = np.concatenate([self._xy, np.zeros_like(self._xy)], axis=1)
+        self._has = np.concatenate([self._has, np.zeros_like(self._has)], axis=1)
+        self._col_id = np.concatenate([self._col_id, np.full(c, -1, dtype=np.int64)])
+
+    def add(self, t_s: float, ids: np.ndarray, xy_norm: np.ndarray) -> None:
+        """Store one frame's observations at time ``t_s`` (the oldest frame is evicted when full)."""
+        slot = self._slot_of(t_s)
+        if slot is None:
+            free = np.nonzero(~np.isfinite(self._slot_t))[0]
+            if len(free) == 0:
+                self.remove_frame(float(np.nanmin(self._slot_t)))
+                free = np.nonzero(~np.isfinite(self._slot_t))[0]
+            slot = int(free[0])
+            self._slot_t[slot] = t_s
+            self._has[slot] = False
+        cols = np.empty(len(ids), dtype=np.int64)
+        for i, fid in enumerate(ids.tolist()):
+            col = self._id_to_col.get(fid)
+            if col is None:
+                free_cols = np.nonzero(self._col_id < 0)[0]
+                if len(free_cols) == 0:
+                    self._grow()
+                    free_cols = np.nonzero(self._col_id < 0)[0]
+                col = int(free_cols[0])
+                self._col_id[col] = fid
+                self._id_to_col[fid] = col
+            cols[i] = col
+        self._xy[slot, cols] = xy_norm
+        self._has[slot, cols] = True
+
+    def _active_cols(self) -> np.ndarray:
+        return np.nonzero(self._col_id >= 0)[0]
+
+    def features_lost(self, t_s: float) -> np.ndarray:
+        """Ids with observations but none at time ``t_s`` (tracks that ended before this frame)."""
+        cols = self._active_cols()
+        slot = self._slot_of(t_s)
+        if slot is None:
+            return self._col_id[cols]
+        return self._col_id[cols[~self._has[slot, cols]]]
+
+    def features_seen_at(self, t_s: float) -> np.ndarray:
+        """Ids observed at time ``t_s``."""
+        slot = self._slot_of(t_s)
+        if slot is None:
+            return np.zeros(0, dtype=np.int64)
+        cols = self._active_cols()
+        return self._col_id[cols[self._has[slot, cols]]]
+
+    def track_lengths(self, ids: np.ndarray) -> np.ndarray:
+        """Number of stored observations of each id (0 for unknown ids), shape (F,)."""
+        cols = np.array([self._id_to_col.get(int(i), -1) for i in ids], dtype=np.int64)
+        valid = self._slot_t == self._slot_t  # finite slots
+        counts = self._has[valid][:, np.maximum(cols, 0)].sum(axis=0) if len(cols) else np.zeros(0, int)
+        return np.where(cols >= 0, counts, 0)
+
+    def observations(self, ids: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Observations of ``ids`` at ``times``: xy (F, K, 2) and mask (F, K) (False for missing)."""
+        cols = np.array([self._id_to_col.get(int(i), -1) for i in ids], dtype=np.int64)
+        F, K = len(ids), len(times)
+        xy = np.zeros((F, K, 2))
+        mask = np.zeros((F, K), dtype=bool)
+        for k, t in enumerate(times):
+            slot = self._slot_of(float(t))
+            if slot is None:
+                continue
+            ok = cols >= 0
+            xy[ok, k] = self._xy[slot, cols[ok]]
+            mask[ok, k] = self._has[slot, cols[ok]]
+        return xy, mask
+
+    def remove_features(self, ids: np.ndarray) -> None:
+        """Delete every observation of ``ids``."""
+        for fid in np.asarray(ids).tolist():
+            col = self._id_to_col.pop(int(fid), None)
+            if col is not None:
+                self._has[:, col] = False
+                self._col_id[col] = -1
+
+    def remove_frame(self, t_s: float) -> None:
+        """Delete the frame at ``t_s`` and every feature left without observations."""
+        slot = self._slot_of(t_s)
+        if slot is None:
+            return
+        self._has[slot] = False
+        self._slot_t[slot] = np.nan
+        cols = self._active_cols()
+        empty = cols[~self._has[:, cols].any(axis=0)]
+        self.remove_features(self._col_id[empty])
+
+    def cleanup_older_than(self, t_s: float) -> None:
+        """Delete every frame older than ``t_s``."""
+        for t in self.frame_times[self.frame_times < t_s]:
+            self.remove_frame(float(t))
+
+    @property
+    def num_features(self) -> int:
+        """Number of feature ids stored."""
+        return len(self._id_to_col)

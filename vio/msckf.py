@@ -1,0 +1,511 @@
+"""Multi-State Constraint Kalman Filter (Mourikis and Roumeliotis, ICRA 2007; open_vins ``UpdaterMSCKF``).
+
+State: IMU ``[R_WB, p_WB, v_WB, b_g, b_a]``, optional camera-IMU extrinsic and time offset, and a sliding
+window of pose clones (:mod:`viotb.vio.state`). Each camera frame: propagate with the IMU to the frame time,
+try a zero-velocity update, clone the pose, and update with the features whose tracks ended (or that are
+about to lose their oldest clone). Landmarks never enter the state: they are triangulated, linearized and projected
+out with the left null space of their Jacobian.
+
+Bad inputs: non-finite IMU values and non-increasing IMU times raise ``ValueError`` naming the value and the
+times (they are rejected, not skipped). A frame without image or features is the documented degraded mode:
+the filter propagates only and :meth:`MsckfEstimator.health` reports 0 tracked features and the condition
+``"no_features"``. Divergence (non-finite state or covariance, non-PSD covariance, runaway innovation,
+position sigma beyond a bound) is reported through ``health().diverged`` with a reason; the filter then stops
+updating and never raises from numpy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from viotb.vio.camera import CameraCalibration
+from viotb.vio.frontend import FeatureDatabase, FrontEnd, KltParams, KltTracker, SimFeatureTracker, Tracks
+from viotb.vio.propagator import Integration, Propagator
+from viotb.vio.state import (
+    BA,
+    BG,
+    EXTRINSIC_BLOCK,
+    IMU_BLOCK,
+    POS,
+    THETA,
+    VEL,
+    ImuValues,
+    State,
+    ekf_update,
+    is_psd,
+    marginal_covariance,
+    marginalize_oldest_clone,
+)
+from viotb.vio.triangulation import TriangulationParams, triangulate
+from viotb.vio.types import (
+    GRAVITY_M_S2,
+    CameraFrame,
+    HealthStatus,
+    ImuNoise,
+    ImuSample,
+    StateEstimate,
+)
+from viotb.vio.update_helpers import Chi2Table, feature_jacobian, measurement_compress, nullspace_project
+
+
+@dataclass(frozen=True)
+class MsckfParams:
+    """MSCKF settings (defaults near open_vins' EuRoC configuration).
+
+    Attributes:
+        max_clones: Clones in the sliding window (10-15).
+        max_features_per_update: Most features used in one update (longest tracks first).
+        min_track_length: Fewest clone observations for a feature to be used.
+        pixel_sigma_px: Feature measurement noise (px).
+        chi2_multiplier: Multiplier on the 95 % chi-square gate of each feature.
+        integration: IMU integration method.
+        use_fej: First-estimates Jacobians for propagation and update.
+        frontend: ``"klt"`` (images) or ``"sim"`` (``frame.features``).
+        klt: KLT settings.
+        triangulation: Triangulation settings.
+        zupt_enabled: Zero-velocity updates while stationary.
+        zupt_max_disparity_px: Largest median feature motion (px) between frames to consider a ZUPT.
+        zupt_min_features: Fewest common features to measure the disparity.
+        zupt_max_velocity_m_s: Largest estimated speed (m/s) to consider a ZUPT.
+        zupt_noise_multiplier: Inflation of the IMU noise in the ZUPT measurement (vibration).
+        zupt_velocity_sigma_m_s: Noise (m/s) of the zero-velocity rows.
+        estimate_extrinsics: Estimate ``R_BC, p_BC`` online.
+        extrinsic_sigma_rad: Prior sigma (rad) of the extrinsic rotation.
+        extrinsic_sigma_m: Prior sigma (m) of the extrinsic translation.
+        estimate_time_offset: Estimate the camera-IMU time offset online.
+        time_offset_sigma_s: Prior sigma (s) of the time offset.
+        max_position_sigma_m: Position sigma (m) beyond which the filter declares divergence.
+        runaway_frames: Consecutive frames with most features failing the gate that declare divergence.
+        runaway_min_features: Fewest gated features for a frame to count towards ``runaway_frames``.
+        runaway_reject_ratio: Rejected fraction above which a frame counts as runaway.
+    """
+
+    max_clones: int = 11
+    max_features_per_update: int = 50
+    min_track_length: int = 3
+    pixel_sigma_px: float = 1.0
+    chi2_multiplier: float = 1.0
+    integration: Integration = Integration.RK4
+    use_fej: bool = True
+    frontend: str = "klt"
+    klt: KltParams = field(default_factory=KltParams)
+    triangulation: TriangulationParams = field(default_factory=TriangulationParams)
+    zupt_enabled: bool = True
+    zupt_max_disparity_px: float = 0.5
+    zupt_min_features: int = 10
+    zupt_max_velocity_m_s: float = 0.2
+    zupt_noise_multiplier: float = 10.0
+    zupt_velocity_sigma_m_s: float = 0.01
+    estimate_extrinsics: bool = False
+    extrinsic_sigma_rad: float = 0.005
+    extrinsic_sigma_m: float = 0.005
+    estimate_time_offset: bool = False
+    time_offset_sigma_s: float = 0.005
+    max_position_sigma_m: float = 100.0
+    runaway_frames: int = 10
+    runaway_min_features: int = 5
+    runaway_reject_ratio: float = 0.7
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    """Bookkeeping of one MSCKF update.
+
+    Attributes:
+        candidates: Features considered.
+        triangulated: Features that triangulated.
+        used: Features that passed the gate and entered the update.
+        rejected: Features rejected by the chi-square gate.
+        rows: Measurement rows after null-space projection (before compression).
+    """
+
+    candidates: int = 0
+    triangulated: int = 0
+    used: int = 0
+    rejected: int = 0
+    rows: int = 0
+
+
+def _init_fields(init: object) -> tuple[float, ImuValues, np.ndarray]:
+    """Read an ``InitResult``-like record (t_s, R_WB, p_WB, v_WB, biases, cov_diag) with clear errors."""
+    try:
+        t_s = float(init.t_s)  # type: ignore[attr-defined]
+        vals = ImuValues(
+            np.array(init.R_WB, dtype=float),  # type: ignore[attr-defined]
+            np.array(init.p_WB, dtype=float),  # type: ignore[attr-defined]
+            np.array(init.v_WB, dtype=float),  # type: ignore[attr-defined]
+            np.array(init.gyro_bias_rad_s, dtype=float),  # type: ignore[attr-defined]
+            np.array(init.accel_bias_m_s2, dtype=float),  # type: ignore[attr-defined]
+        )
+        cov_diag = np.asarray(init.cov_diag, dtype=float)  # type: ignore[attr-defined]
+    except AttributeError as exc:
+        raise ValueError(f"initialize: the init record lacks a field ({exc})") from None
+    shapes = {
+        "R_WB": (vals.R_WB, (3, 3)),
+        "p_WB": (vals.p_WB, (3,)),
+        "v_WB": (vals.v_WB, (3,)),
+        "gyro_bias_rad_s": (vals.gyro_bias_rad_s, (3,)),
+        "accel_bias_m_s2": (vals.accel_bias_m_s2, (3,)),
+        "cov_diag": (cov_diag, (15,)),
+    }
+    for name, (arr, shape) in shapes.items():
+        if arr.shape != shape:
+            raise ValueError(f"initialize: {name} must have shape {shape}, got {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"initialize: {name} is not finite: {arr.tolist()}")
+    if np.any(cov_diag <= 0.0):
+        raise ValueError(f"initialize: cov_diag must be positive, got {cov_diag.tolist()}")
+    return t_s, vals, np.diag(cov_diag)
+
+
+def _make_initializer(calib: CameraCalibration, noise: ImuNoise) -> object | None:
+    """The shared :class:`InertialInitializer` when that module is available, else None."""
+    try:
+        from viotb.vio.initialization import InertialInitializer, InitParams
+    except ImportError:
+        return None
+    return InertialInitializer(calib, noise, InitParams())
+
+
+class MsckfEstimator:
+    """The MSCKF estimator (implements :class:`viotb.vio.types.Estimator`).
+
+    Args:
+        calib: Camera intrinsics, extrinsics and time offset.
+        noise: IMU noise densities.
+        params: Settings.
+        frontend: Optional front end overriding ``params.frontend``.
+    """
+
+    name = "msckf"
+
+    def __init__(
+        self,
+        calib: CameraCalibration,
+        noise: ImuNoise,
+        params: MsckfParams | None = None,
+        frontend: FrontEnd | None = None,
+    ) -> None:
+        """Create an uninitialized filter."""
+        self.calib = calib
+        self.noise = noise
+        self.params = params if params is not None else MsckfParams()
+        p = self.params
+        if not 2 <= p.max_clones <= 60:
+            raise ValueError(f"MsckfParams.max_clones must be in 2..60, got {p.max_clones}")
+        if frontend is not None:
+            self.frontend = frontend
+        elif p.frontend == "klt":
+            self.frontend = KltTracker(calib.camera, p.klt)
+        elif p.frontend == "sim":
+            self.frontend = SimFeatureTracker(calib.camera)
+        else:
+            raise ValueError(f"MsckfParams.frontend must be 'klt' or 'sim', got {p.frontend!r}")
+        self.propagator = Propagator(noise, p.integration, p.use_fej)
+        self.database = FeatureDatabase(p.max_clones + 3)
+        self.chi2 = Chi2Table(2 * (p.max_clones + 2) + 20)
+        self.state: State | None = None
+        self.initializer = _make_initializer(calib, noise)
+        self._focal_px = 0.5 * (calib.camera.fx + calib.camera.fy)
+        self._sigma_norm = p.pixel_sigma_px / self._focal_px
+        self._prev_tracks: Tracks | None = None
+        self._prev_frame_t_imu: float | None = None
+        self._last_imu: ImuSample | None = None
+        self._health = HealthStatus(t_s=0.0, initialized=False)
+        self._diverged_reason = ""
+        self._runaway_count = 0
+        self._version = 0
+        self._pred_cache: tuple[int, float, ImuValues, np.ndarray, np.ndarray] | None = None
+        self.last_stats = UpdateStats()
+        self.zupt_count = 0
+
+    # ------------------------------------------------------------------ protocol
+    def initialize(self, init: object) -> None:
+        """Start the filter from an ``InitResult`` (t_s, R_WB, p_WB, v_WB, biases, cov_diag (15,))."""
+        t_s, vals, cov = _init_fields(init)
+        p = self.params
+        ext_cov = None
+        if p.estimate_extrinsics:
+            ext_cov = np.diag([p.extrinsic_sigma_rad**2] * 3 + [p.extrinsic_sigma_m**2] * 3)
+        td_var = p.time_offset_sigma_s**2 if p.estimate_time_offset else None
+        self.state = State(
+            t_s, vals, cov, self.calib.R_BC, self.calib.p_BC, self.calib.time_offset_s, ext_cov, td_var
+        )
+        self._version += 1
+        self._health = HealthStatus(t_s=t_s, initialized=True)
+
+    def feed_imu(self, sample: ImuSample) -> None:
+        """Buffer one IMU reading (ValueError naming value/time on NaN/inf or non-increasing time)."""
+        self.propagator.feed_imu(sample)
+        self._last_imu = sample
+        if self.state is None and self.initializer is not None:
+            self.initializer.feed_imu(sample)  # type: ignore[attr-defined]
+
+    def feed_camera(self, frame: CameraFrame) -> None:
+        """Track features, propagate, and update (see the module docstring for the degraded modes)."""
+        t_imu = frame.t_s + (self.state.time_offset_s if self.state is not None else self.calib.time_offset_s)
+        tracks = self.frontend.process(frame, t_imu)
+        if self.state is None:
+            self._try_initialize(tracks)
+            self._prev_tracks = tracks
+            return
+        if self._diverged_reason:
+            self._health = self._make_health(frame.t_s, tracks, UpdateStats(), ())
+            return
+        try:
+            self._process(frame, tracks)
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+            if isinstance(exc, ValueError) and "clone time" in str(exc):
+                raise
+            self._declare_divergence(f"numerical failure in the update: {exc}")
+            self._health = self._make_health(frame.t_s, tracks, UpdateStats(), ())
+        self._prev_tracks = tracks
+
+    def estimate(self) -> StateEstimate | None:
+        """Latest state propagated to the newest IMU sample (the filter itself is not changed)."""
+        st = self.state
+        if st is None:
+            return None
+        t_new = self._last_imu.t_s if self._last_imu is not None else st.t_s
+        cache = self._pred_cache
+        if cache is not None and cache[0] == self._version and cache[1] <= t_new:
+            _, t0, vals0, phi0, q0 = cache
+        else:
+            t0, vals0, phi0, q0 = st.t_s, st.imu, np.eye(15), np.zeros((15, 15))
+        vals, phi, q = self.propagator.predict(vals0, t0, t_new)
+        phi_tot, q_tot = phi @ phi0, phi @ q0 @ phi.T + q
+        t_out = max(t_new, t0)
+        self._pred_cache = (self._version, t_out, vals, phi_tot, q_tot)
+        P = marginal_covariance(st, [st.block(IMU_BLOCK)])
+        cov = phi_tot @ P @ phi_tot.T + q_tot
+        omega = np.zeros(3)
+        if self._last_imu is not None:
+            omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
+        return StateEstimate(
+            t_s=t_out, R_WB=vals.R_WB.copy(), p_WB=vals.p_WB.copy(), v_WB=vals.v_WB.copy(),
+            gyro_bias_rad_s=vals.gyro_bias_rad_s.copy(), accel_bias_m_s2=vals.accel_bias_m_s2.copy(),
+            omega_B_rad_s=omega, cov=0.5 * (cov + cov.T),
+        )
+
+    def health(self) -> HealthStatus:
+        """Health after the latest camera frame."""
+        return self._health
+
+    # ------------------------------------------------------------------ internals
+    def _try_initialize(self, tracks: Tracks) -> None:
+        init = None
+        if self.initializer is not None:
+            if len(tracks):
+                self.initializer.feed_features(tracks.t_imu_s, tracks.ids, tracks.xy_norm)  # type: ignore[attr-defined]
+            init = self.initializer.try_initialize()  # type: ignore[attr-defined]
+        if init is not None:
+            self.initialize(init)
+        conditions = () if init is not None else ("waiting_for_init",)
+        self._health = HealthStatus(
+            t_s=tracks.t_cam_s, initialized=self.state is not None, tracked_features=len(tracks),
+            conditions=conditions,
+        )
+
+    def _make_health(
+        self, t_s: float, tracks: Tracks, stats: UpdateStats, conditions: tuple[str, ...]
+    ) -> HealthStatus:
+        conds = list(conditions)
+        if len(tracks) == 0:
+            conds.append("no_features")
+        elif len(tracks) < 20:
+            conds.append("feature_poverty")
+        return HealthStatus(
+            t_s=t_s, initialized=True, tracked_features=len(tracks), updated_features=stats.used,
+            chi2_rejections=stats.rejected, diverged=bool(self._diverged_reason),
+            reason=self._diverged_reason,
+            conditions=tuple(conds),
+        )
+
+    def _declare_divergence(self, reason: str) -> None:
+        if not self._diverged_reason:
+            self._diverged_reason = reason
+
+    def _process(self, frame: CameraFrame, tracks: Tracks) -> None:
+        st = self.state
+        assert st is not None
+        p = self.params
+        t_imu = frame.t_s + st.time_offset_s
+        if t_imu < st.t_s - 1e-9 or (st.clones and frame.t_s <= next(reversed(st.clones))):
+            raise ValueError(
+                f"camera frame at t={frame.t_s:.9f} s is not newer than the filter (state at {st.t_s:.9f} s)"
+            )
+        self.propagator.propagate(st, t_imu)
+        self._version += 1
+        conditions: list[str] = []
+        if p.zupt_enabled and self._try_zupt(tracks, t_imu):
+            conditions.append("zupt")
+            self.zupt_count += 1
+            stats = UpdateStats()
+        else:
+            self.propagator.propagate_and_clone(st, frame.t_s)
+            self.database.add(frame.t_s, tracks.ids, tracks.xy_norm)
+            stats = self._msckf_update(frame.t_s)
+            if len(st.clones) > p.max_clones:
+                t_old = marginalize_oldest_clone(st)
+                if t_old is not None:
+                    self.database.remove_frame(t_old)
+        self._prev_frame_t_imu = t_imu
+        self._version += 1
+        self._check_divergence(stats)
+        self.last_stats = stats
+        self._health = self._make_health(frame.t_s, tracks, stats, tuple(conditions))
+
+    def _check_divergence(self, stats: UpdateStats) -> None:
+        st = self.state
+        assert st is not None
+        p = self.params
+        if not st.is_finite():
+            self._declare_divergence("non-finite value in the state or covariance")
+            return
+        if not is_psd(st, tol=1e-9):
+            self._declare_divergence("covariance is not positive semi-definite")
+            return
+        pos_sigma = float(np.sqrt(np.max(np.diag(st.cov)[POS:POS + 3])))
+        if pos_sigma > p.max_position_sigma_m:
+            self._declare_divergence(
+                f"position sigma {pos_sigma:.1f} m exceeds max_position_sigma_m={p.max_position_sigma_m}"
+            )
+            return
+        gated = stats.used + stats.rejected
+        if gated >= p.runaway_min_features and stats.rejected > p.runaway_reject_ratio * gated:
+            self._runaway_count += 1
+        elif gated >= p.runaway_min_features:
+            self._runaway_count = 0
+        if self._runaway_count >= p.runaway_frames:
+            self._declare_divergence(
+                f"runaway innovation: more than {p.runaway_reject_ratio:.0%} of the features failed the chi2 "
+                f"gate in {self._runaway_count} consecutive frames"
+            )
+
+    def _try_zupt(self, tracks: Tracks, t_imu: float) -> bool:
+        """Zero-velocity update when features barely move and the IMU agrees (open_vins ZUPT idea)."""
+        st = self.state
+        assert st is not None
+        p = self.params
+        prev = self._prev_tracks
+        if prev is None or self._prev_frame_t_imu is None or len(tracks) == 0 or len(prev) == 0:
+            return False
+        _, ia, ib = np.intersect1d(tracks.ids, prev.ids, assume_unique=True, return_indices=True)
+        if len(ia) < p.zupt_min_features:
+            return False
+        disparity_px = float(np.median(np.linalg.norm(tracks.uv_px[ia] - prev.uv_px[ib], axis=1)))
+        if disparity_px > p.zupt_max_disparity_px or np.linalg.norm(st.imu.v_WB) > p.zupt_max_velocity_m_s:
+            return False
+        t0 = self._prev_frame_t_imu
+        if t_imu - t0 <= 1e-6:
+            return False
+        _, g, a = self.propagator.readings(t0, t_imu)
+        T = t_imu - t0
+        # Rows: mean gyro = b_g, mean accel = R^T (0, 0, g) + b_a, velocity = 0.
+        g_up_B = st.imu.R_WB.T @ np.array([0.0, 0.0, GRAVITY_M_S2])
+        r = np.concatenate([
+            g.mean(axis=0) - st.imu.gyro_bias_rad_s,
+            a.mean(axis=0) - g_up_B - st.imu.accel_bias_m_s2,
+            -st.imu.v_WB,
+        ])
+        H = np.zeros((9, st.dim))
+        H[0:3, BG:BG + 3] = np.eye(3)
+        H[3:6, THETA:THETA + 3] = np.array(
+            [[0.0, -g_up_B[2], g_up_B[1]], [g_up_B[2], 0.0, -g_up_B[0]], [-g_up_B[1], g_up_B[0], 0.0]]
+        )
+        H[3:6, BA:BA + 3] = np.eye(3)
+        H[6:9, VEL:VEL + 3] = np.eye(3)
+        m2 = p.zupt_noise_multiplier**2
+        R = np.diag(
+            [m2 * self.noise.gyro_noise_density_rad_s_sqrthz**2 / T] * 3
+            + [m2 * self.noise.accel_noise_density_m_s2_sqrthz**2 / T] * 3
+            + [p.zupt_velocity_sigma_m_s**2] * 3
+        )
+        S = H @ st.cov @ H.T + R
+        chi2 = float(r @ np.linalg.solve(S, r))
+        if chi2 > p.chi2_multiplier * float(self.chi2(9)):
+            return False
+        ekf_update(st, H, r, R)
+        return True
+
+    def _msckf_update(self, t_now: float) -> UpdateStats:
+        """MSCKF update (Mourikis and Roumeliotis 2007, sec. III-D/E; open_vins ``UpdaterMSCKF::update``)."""
+        st = self.state
+        assert st is not None
+        p = self.params
+        db = self.database
+        # 0. Features whose tracks ended, plus those seen in the oldest clone when it is about to go.
+        lost = db.features_lost(t_now)
+        cand = lost
+        times = st.clone_times
+        if len(st.clones) > p.max_clones:
+            cand = np.union1d(lost, db.features_seen_at(float(times[0])))
+        if len(cand) == 0:
+            return UpdateStats()
+        # 1. Clean: observations at clone times only (the database is keyed by clone time) and tracks
+        #    long enough; the other lost features can never be used.
+        lengths = db.track_lengths(cand)
+        usable = lengths >= p.min_track_length
+        db.remove_features(lost[~np.isin(lost, cand[usable])])
+        cand, lengths = cand[usable], lengths[usable]
+        if len(cand) == 0:
+            return UpdateStats()
+        order = np.argsort(-lengths, kind="stable")[: p.max_features_per_update]
+        cand = cand[order]
+        xy, mask = db.observations(cand, times)
+        db.remove_features(cand)
+        clones = list(st.clones.values())
+        R_WB = np.stack([c.R_WB for c in clones])
+        p_WB = np.stack([c.p_WB for c in clones])
+        R_WC = R_WB @ st.R_BC
+        p_WC = p_WB + R_WB @ st.p_BC
+        # 2. Triangulate every feature in the current clone estimates.
+        tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, self._focal_px)
+        ok = tri.valid
+        n_cand = len(cand)
+        if not np.any(ok):
+            return UpdateStats(candidates=n_cand)
+        xy, mask, p_f = xy[ok], mask[ok], tri.p_W[ok]
+        F, K = mask.shape
+        # 3. Residuals at the current estimates, Jacobians at the first estimates (FEJ).
+        cur = feature_jacobian(R_WB[None], p_WB[None], st.R_BC, st.p_BC, p_f[:, None, :])
+        if p.use_fej:
+            R_fej = np.stack([c.R_WB_fej for c in clones])
+            p_fej = np.stack([c.p_WB_fej for c in clones])
+            jac = feature_jacobian(R_fej[None], p_fej[None], st.R_BC, st.p_BC, p_f[:, None, :])
+        else:
+            jac = cur
+        w = mask[..., None].astype(float)
+        r = ((xy - cur.z_norm) * w).reshape(F, 2 * K)
+        H_f = (jac.H_feature * w[..., None]).reshape(F, 2 * K, 3)
+        H_x = np.zeros((F, 2 * K, st.dim))
+        H_pose = jac.H_pose * w[..., None]
+        for k, t in enumerate(times):
+            o = st.clone_block(float(t)).offset
+            H_x[:, 2 * k:2 * k + 2, o:o + 6] = H_pose[:, k]
+        if st.has_block(EXTRINSIC_BLOCK):
+            o = st.block(EXTRINSIC_BLOCK).offset
+            H_x[:, :, o:o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * K, 6)
+        # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
+        H_o, r_o = nullspace_project(H_x, H_f, r)
+        # 5. Chi-square gate at 95 % per feature with dof = 2 m - 3.
+        P = st.cov
+        sigma2 = self._sigma_norm**2
+        HP = (H_o.reshape(-1, st.dim) @ P).reshape(H_o.shape)
+        S = HP @ np.swapaxes(H_o, 1, 2)
+        S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += sigma2
+        chi2 = np.einsum("fi,fi->f", r_o, np.linalg.solve(S, r_o[..., None])[..., 0])
+        dof = 2 * mask.sum(axis=1) - 3
+        passed = chi2 < p.chi2_multiplier * self.chi2(dof)
+        n_pass = int(passed.sum())
+        stats = UpdateStats(n_cand, F, n_pass, int(F - n_pass), int(dof[passed].sum()))
+        if n_pass == 0:
+            return stats
+        # 6. Stack, compress (QR) and update.
+        H_all = H_o[passed].reshape(-1, st.dim)
+        r_all = r_o[passed].reshape(-1)
+        H_c, r_c = measurement_compress(H_all, r_all)
+        ekf_update(st, H_c, r_c, sigma2)
+        # 7. Marginalizing the oldest clone is done by the caller after this update.
+        return stats

@@ -1,0 +1,161 @@
+"""Linear-algebra kernels of the MSCKF update (open_vins ``UpdaterHelper``), batched over features.
+
+Measurement of feature ``f`` in the clone ``(R_WB, p_WB)`` with camera extrinsic ``(R_BC, p_BC)``, in
+undistorted normalized coordinates::
+
+    p_B = R_WB^T (p_f_W - p_WB),    p_C = R_BC^T (p_B - p_BC),    z = p_C[:2] / p_C[2]
+
+With right perturbations ``R_WB = R_hat Exp(dtheta)``, ``R_BC = R_hat Exp(dphi)`` the Jacobians are
+``dz/dp_C = 1/Z [[1, 0, -x], [0, 1, -y]]`` times::
+
+    dp_C/dtheta = R_BC^T [p_B]x        dp_C/dp_WB = -R_BC^T R_WB^T      dp_C/dp_f = R_BC^T R_WB^T
+    dp_C/dphi   = [p_C]x               dp_C/dp_BC = -R_BC^T
+
+The time offset enters through the clone covariance (see :func:`viotb.vio.state.augment_clone`), as in
+open_vins, so the feature Jacobian has no direct time-offset column.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.stats
+
+
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices of vectors ``v`` (..., 3) -> (..., 3, 3)."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+@dataclass(frozen=True)
+class FeatureJacobian:
+    """Predicted measurements and Jacobians for a batch of (feature, clone) pairs (leading shape ``S``).
+
+    Attributes:
+        z_norm: Predicted undistorted normalized coordinates, shape S + (2,).
+        depth_m: Depth ``p_C[2]`` (m), shape S.
+        H_pose: Jacobian w.r.t. the clone error ``[dtheta, dp]``, shape S + (2, 6).
+        H_extrinsic: Jacobian w.r.t. the extrinsic error ``[dphi_BC, dp_BC]``, shape S + (2, 6).
+        H_feature: Jacobian w.r.t. ``p_f_W``, shape S + (2, 3).
+    """
+
+    z_norm: np.ndarray
+    depth_m: np.ndarray
+    H_pose: np.ndarray
+    H_extrinsic: np.ndarray
+    H_feature: np.ndarray
+
+
+def feature_jacobian(
+    R_WB: np.ndarray, p_WB: np.ndarray, R_BC: np.ndarray, p_BC: np.ndarray, p_f_W: np.ndarray
+) -> FeatureJacobian:
+    """Measurement prediction and Jacobians (open_vins ``get_feature_jacobian_full``, global-3D feature).
+
+    All inputs broadcast against each other over leading dimensions.
+
+    Args:
+        R_WB: Clone orientations, shape (..., 3, 3).
+        p_WB: Clone positions (m), shape (..., 3).
+        R_BC: Camera-to-body rotation, shape (..., 3, 3).
+        p_BC: Camera origin in B (m), shape (..., 3).
+        p_f_W: Feature positions (m) in W, shape (..., 3).
+
+    Returns:
+        The predictions and Jacobians.
+    """
+    R_BW = np.swapaxes(R_WB, -1, -2)
+    R_CB = np.swapaxes(R_BC, -1, -2)
+    p_B = np.einsum("...ij,...j->...i", R_BW, p_f_W - p_WB)
+    p_C = np.einsum("...ij,...j->...i", R_CB, p_B - p_BC)
+    Z = p_C[..., 2]
+    Z_safe = np.where(np.abs(Z) < 1e-12, 1e-12, Z)
+    z = p_C[..., :2] / Z_safe[..., None]
+    dz_dpc = np.zeros(z.shape[:-1] + (2, 3))
+    inv_z = 1.0 / Z_safe
+    dz_dpc[..., 0, 0] = inv_z
+    dz_dpc[..., 1, 1] = inv_z
+    dz_dpc[..., 0, 2] = -z[..., 0] * inv_z
+    dz_dpc[..., 1, 2] = -z[..., 1] * inv_z
+    dz_dpb = dz_dpc @ R_CB
+    H_f = dz_dpb @ R_BW
+    H_pose = np.concatenate([dz_dpb @ skew_batch(p_B), -H_f], axis=-1)
+    H_ext = np.concatenate(
+        [dz_dpc @ skew_batch(p_C), -np.broadcast_to(dz_dpb, dz_dpc.shape)], axis=-1
+    )
+    return FeatureJacobian(z, Z, H_pose, H_ext, H_f)
+
+
+def nullspace_project(
+    H_x: np.ndarray, H_f: np.ndarray, r: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Project out the feature: left-multiply by the left null space of ``H_f`` (batched).
+
+    With the complete QR ``H_f = [Q1 Q2] [R1; 0]`` (Householder, Golub and Van Loan, "Matrix Computations",
+    Alg. 5.2.1; open_vins uses the equivalent Givens sweep of Alg. 5.2.4), ``Q2^T H_f = 0`` and
+    ``Q2^T r = Q2^T H_x dx + Q2^T n`` no longer depends on the feature error (Mourikis and Roumeliotis 2007,
+    eq. 23-24). ``Q2`` is orthonormal, so isotropic noise stays isotropic.
+
+    Args:
+        H_x: State Jacobian, shape (..., m, n).
+        H_f: Feature Jacobian, shape (..., m, 3) of rank 3, m > 3.
+        r: Residual, shape (..., m).
+
+    Returns:
+        ``(H_o, r_o)`` with shapes (..., m - 3, n) and (..., m - 3).
+    """
+    if H_f.shape[-2] <= H_f.shape[-1]:
+        raise ValueError(f"nullspace_project: H_f has {H_f.shape[-2]} rows, needs more than {H_f.shape[-1]}")
+    Q, _ = np.linalg.qr(H_f, mode="complete")
+    k = H_f.shape[-1]
+    Q2t = np.swapaxes(Q[..., :, k:], -1, -2)
+    return Q2t @ H_x, np.einsum("...ij,...j->...i", Q2t, r)
+
+
+def measurement_compress(H: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Compress a tall system with the thin QR ``H = Q1 T`` to ``(T, Q1^T r)`` (Mourikis 2007, eq. 26-27).
+
+    ``H^T H`` and ``H^T r`` are preserved, so an isotropic-noise EKF update is unchanged. Systems that are
+    not taller than wide are returned as they are.
+
+    Args:
+        H: shape (m, n).
+        r: shape (m,).
+
+    Returns:
+        ``(H_c, r_c)`` with at most n rows.
+    """
+    m, n = H.shape
+    if m <= n:
+        return H, r
+    # QR of the augmented [H | r]: its triangular factor holds T and Q1^T r without forming Q.
+    T_aug = np.linalg.qr(np.column_stack([H, r]), mode="r")
+    return T_aug[:n, :n], T_aug[:n, n]
+
+
+class Chi2Table:
+    """95 % chi-square quantiles built once (open_vins builds ``chi_squared_table`` in its constructor).
+
+    Args:
+        max_dof: Largest degree of freedom needed.
+        confidence: Quantile (0.95).
+    """
+
+    def __init__(self, max_dof: int = 500, confidence: float = 0.95) -> None:
+        """Tabulate ``chi2.ppf(confidence, dof)`` for dof = 0..max_dof (dof 0 maps to 0)."""
+        self.confidence = confidence
+        self._table = np.concatenate([[0.0], scipy.stats.chi2.ppf(confidence, np.arange(1, max_dof + 1))])
+
+    def __call__(self, dof: np.ndarray | int) -> np.ndarray:
+        """Quantile(s) for ``dof`` (ValueError when out of the table)."""
+        dof_arr = np.asarray(dof)
+        if np.any(dof_arr < 0) or np.any(dof_arr >= len(self._table)):
+            raise ValueError(f"Chi2Table: dof {dof} outside 0..{len(self._table) - 1}")
+        return self._table[dof_arr]
