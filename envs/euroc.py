@@ -1,0 +1,525 @@
+"""EuRoC ASL dataset folders: reader (real or recorded) and writer.
+
+Layout (Burri et al., "The EuRoC micro aerial vehicle datasets", IJRR 2016)::
+
+    mav0/cam0/data/<t_ns>.png           8-bit grayscale images
+    mav0/cam0/data.csv                  #timestamp [ns],filename
+    mav0/cam0/sensor.yaml               intrinsics [fu, fv, cu, cv], radtan distortion, T_BS, rate_hz
+    mav0/imu0/data.csv                  #timestamp [ns],w_RS_S_x [rad s^-1],...,a_RS_S_z [m s^-2]
+    mav0/imu0/sensor.yaml               Kalibr noise densities, rate_hz
+    mav0/state_groundtruth_estimate0/data.csv   t, p xyz, q wxyz, v xyz, bw xyz, ba xyz (optional)
+    mav0/sim_landmarks0/data.csv        #id,p_x [m],p_y [m],p_z [m] (our extension, optional)
+
+``sensor.yaml`` files start with OpenCV's ``%YAML:1.0`` line, which PyYAML rejects; it is stripped before
+parsing. The camera clock offset, when non-zero, is stored as Kalibr's ``timeshift_cam_imu``
+(``t_imu = t_cam + timeshift_cam_imu``). Timestamps are integer nanoseconds in files and float64 seconds
+(``t_ns * 1e-9``) in memory; the integer stamps are kept as well for exact round trips.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+from viotb.vio.camera import CameraCalibration, PinholeCamera
+from viotb.vio.types import ImuNoise, ImuSeries, TrajectoryArrays
+
+IMU_HEADER = (
+    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
+)
+CAM_HEADER = "#timestamp [ns],filename"
+GT_HEADER = (
+    "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+    "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
+    "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
+)
+LANDMARK_HEADER = "#id,p_x [m],p_y [m],p_z [m]"
+_NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class EurocDataset:
+    """A loaded EuRoC folder (images are loaded lazily with :func:`load_image`).
+
+    Attributes:
+        root: The ``mav0`` folder.
+        imu: IMU readings in B (= imu0 frame), N samples.
+        cam_t_s: Camera stamps (s, camera clock), shape (F,).
+        image_paths: PNG path of each frame, length F.
+        calib: Intrinsics, camera-to-body extrinsics (``T_BS`` of cam0) and clock offset.
+        imu_noise: Noise densities from ``imu0/sensor.yaml``.
+        imu_rate_hz: Nominal IMU rate (Hz).
+        groundtruth: Poses (and velocities) of B in W, or None when the folder has none.
+        gt_gyro_bias: Ground-truth gyro bias (rad/s), shape (M, 3), or None.
+        gt_accel_bias: Ground-truth accelerometer bias (m/s^2), shape (M, 3), or None.
+        landmarks_W: Simulated landmark positions (m), shape (L, 3), or None.
+        imu_t_ns: IMU stamps (ns), shape (N,), int64.
+        cam_t_ns: Camera stamps (ns), shape (F,), int64.
+        gt_t_ns: Ground-truth stamps (ns), shape (M,), int64, or None.
+    """
+
+    root: Path
+    imu: ImuSeries
+    cam_t_s: np.ndarray
+    image_paths: tuple[Path, ...]
+    calib: CameraCalibration
+    imu_noise: ImuNoise
+    imu_rate_hz: float
+    groundtruth: TrajectoryArrays | None
+    gt_gyro_bias: np.ndarray | None
+    gt_accel_bias: np.ndarray | None
+    landmarks_W: np.ndarray | None
+    imu_t_ns: np.ndarray
+    cam_t_ns: np.ndarray
+    gt_t_ns: np.ndarray | None
+
+    def __len__(self) -> int:
+        """Number of camera frames."""
+        return len(self.image_paths)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Reading.
+
+
+def _resolve_mav0(path: Path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"EuRoC folder not found: {path}")
+    if not path.is_dir():
+        raise ValueError(f"EuRoC path is not a folder: {path}")
+    if (path / "mav0").is_dir():
+        return path / "mav0"
+    if (path / "imu0").is_dir() or (path / "cam0").is_dir():
+        return path
+    raise FileNotFoundError(f"no mav0 folder (with cam0/ and imu0/) in {path}")
+
+
+def _require_file(path: Path) -> Path:
+    if not path.is_file():
+        raise FileNotFoundError(f"missing EuRoC file: {path}")
+    return path
+
+
+def _read_yaml(path: Path) -> dict:
+    """Parse a sensor.yaml, tolerating OpenCV's ``%YAML:1.0`` first line."""
+    text = _require_file(path).read_text()
+    lines = text.splitlines()
+    if lines and lines[0].startswith("%YAML"):
+        lines = lines[1:]
+    try:
+        data = yaml.safe_load("\n".join(lines))
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: malformed YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a YAML mapping, got {type(data).__name__}")
+    return data
+
+
+def _yaml_field(data: dict, path: Path, key: str, length: int | None = None) -> object:
+    if key not in data:
+        raise ValueError(f"{path}: missing field {key!r}")
+    value = data[key]
+    if length is not None:
+        if not isinstance(value, list) or len(value) != length:
+            raise ValueError(f"{path}: field {key!r} must be a list of {length} numbers, got {value!r}")
+        try:
+            value = [float(v) for v in value]
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: field {key!r} must hold numbers, got {data[key]!r}") from None
+        if not all(np.isfinite(value)):
+            raise ValueError(f"{path}: field {key!r} has non-finite values: {value!r}")
+    return value
+
+
+def _yaml_number(data: dict, path: Path, key: str) -> float:
+    value = _yaml_field(data, path, key)
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: field {key!r} must be a number, got {value!r}") from None
+    if not np.isfinite(number):
+        raise ValueError(f"{path}: field {key!r} must be finite, got {value!r}")
+    return number
+
+
+def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
+    data = _read_yaml(path)
+    model = data.get("camera_model", "pinhole")
+    if model != "pinhole":
+        raise ValueError(f"{path}: camera_model must be 'pinhole', got {model!r}")
+    dist_model = data.get("distortion_model", "radial-tangential")
+    if dist_model not in ("radial-tangential", "radtan", "plumb_bob"):
+        raise ValueError(f"{path}: distortion_model must be 'radial-tangential', got {dist_model!r}")
+    fu, fv, cu, cv = _yaml_field(data, path, "intrinsics", 4)  # type: ignore[misc]
+    dist = tuple(_yaml_field(data, path, "distortion_coefficients", 4))  # type: ignore[arg-type]
+    width, height = _yaml_field(data, path, "resolution", 2)  # type: ignore[misc]
+    if width != int(width) or height != int(height) or width <= 0 or height <= 0:
+        raise ValueError(f"{path}: field 'resolution' must be 2 positive integers, got {[width, height]}")
+    t_bs = _yaml_field(data, path, "T_BS")
+    if not isinstance(t_bs, dict):
+        raise ValueError(f"{path}: field 'T_BS' must be a mapping with 'data', got {t_bs!r}")
+    T = np.array(_yaml_field(t_bs, path, "data", 16)).reshape(4, 4)  # type: ignore[arg-type]
+    R_BC = T[:3, :3]
+    if not np.allclose(R_BC.T @ R_BC, np.eye(3), atol=1e-5) or np.linalg.det(R_BC) < 0.0:
+        raise ValueError(f"{path}: T_BS rotation block is not a rotation matrix: {R_BC.tolist()}")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"{path}: T_BS last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    rate_hz = _yaml_number(data, path, "rate_hz")
+    offset_s = _yaml_number(data, path, "timeshift_cam_imu") if "timeshift_cam_imu" in data else 0.0
+    camera = PinholeCamera(int(width), int(height), fu, fv, cu, cv, dist)  # type: ignore[arg-type]
+    calib = CameraCalibration(camera, R_BC.copy(), T[:3, 3].copy(), offset_s, rate_hz)
+    return calib, int(width), int(height)
+
+
+def _read_imu_yaml(path: Path) -> tuple[ImuNoise, float]:
+    data = _read_yaml(path)
+    noise = ImuNoise(
+        _yaml_number(data, path, "gyroscope_noise_density"),
+        _yaml_number(data, path, "gyroscope_random_walk"),
+        _yaml_number(data, path, "accelerometer_noise_density"),
+        _yaml_number(data, path, "accelerometer_random_walk"),
+    )
+    return noise, _yaml_number(data, path, "rate_hz")
+
+
+def _read_rows(path: Path, n_cols: int) -> tuple[list[int], list[list[str]]]:
+    """Data rows of a EuRoC CSV as (1-based line numbers, stripped fields); checks the column count."""
+    line_numbers: list[int] = []
+    rows: list[list[str]] = []
+    with _require_file(path).open("r", newline="") as handle:
+        for line_no, line in enumerate(handle, start=1):
+            text = line.strip()
+            if not text or text.startswith("#"):
+                continue
+            fields = [f.strip() for f in text.split(",")]
+            if len(fields) != n_cols:
+                raise ValueError(
+                    f"{path}, line {line_no}: expected {n_cols} comma-separated values, "
+                    f"got {len(fields)}: {text!r}"
+                )
+            line_numbers.append(line_no)
+            rows.append(fields)
+    if not rows:
+        raise ValueError(f"{path}: no data rows")
+    return line_numbers, rows
+
+
+def _parse_ns(path: Path, line_numbers: list[int], column: list[str]) -> np.ndarray:
+    out = np.empty(len(column), dtype=np.int64)
+    for i, text in enumerate(column):
+        try:
+            out[i] = int(text)
+        except ValueError:
+            raise ValueError(
+                f"{path}, line {line_numbers[i]}: timestamp must be an integer (ns), got {text!r}"
+            ) from None
+    diffs = np.diff(out)
+    bad = np.flatnonzero(diffs <= 0)
+    if bad.size:
+        i = int(bad[0])
+        kind = "duplicate" if diffs[i] == 0 else "non-monotonic"
+        raise ValueError(
+            f"{path}, lines {line_numbers[i]}-{line_numbers[i + 1]}: {kind} timestamps "
+            f"{out[i]} then {out[i + 1]} (must strictly increase)"
+        )
+    return out
+
+
+def _parse_floats(path: Path, line_numbers: list[int], rows: list[list[str]]) -> np.ndarray:
+    out = np.empty((len(rows), len(rows[0])))
+    for i, row in enumerate(rows):
+        for j, text in enumerate(row):
+            try:
+                value = float(text)
+            except ValueError:
+                where = f"{path}, line {line_numbers[i]}, column {j + 2}"
+                raise ValueError(f"{where}: not a number: {text!r}") from None
+            if not np.isfinite(value):
+                raise ValueError(f"{path}, line {line_numbers[i]}, column {j + 2}: non-finite value {text!r}")
+            out[i, j] = value
+    return out
+
+
+def _read_numeric_csv(path: Path, n_cols: int) -> tuple[np.ndarray, np.ndarray]:
+    """(timestamps ns (N,), values (N, n_cols - 1)) of a numeric EuRoC CSV."""
+    line_numbers, rows = _read_rows(path, n_cols)
+    t_ns = _parse_ns(path, line_numbers, [r[0] for r in rows])
+    values = _parse_floats(path, line_numbers, [r[1:] for r in rows])
+    return t_ns, values
+
+
+def _ns_to_s(t_ns: np.ndarray) -> np.ndarray:
+    return t_ns.astype(np.float64) * 1e-9
+
+
+def read_euroc(path: Path | str) -> EurocDataset:
+    """Load a EuRoC ASL folder (the folder holding ``mav0``, or ``mav0`` itself).
+
+    Raises:
+        FileNotFoundError: Missing folder, file or image (the message names it).
+        ValueError: Malformed YAML/CSV content, naming the file, line and value.
+    """
+    root = _resolve_mav0(Path(path))
+    calib, _, _ = _read_camera_yaml(root / "cam0" / "sensor.yaml")
+    imu_noise, imu_rate_hz = _read_imu_yaml(root / "imu0" / "sensor.yaml")
+
+    imu_path = root / "imu0" / "data.csv"
+    imu_t_ns, imu_values = _read_numeric_csv(imu_path, 7)
+    imu = ImuSeries(_ns_to_s(imu_t_ns), imu_values[:, :3].copy(), imu_values[:, 3:].copy(),
+                    np.zeros(len(imu_t_ns), dtype=bool))
+
+    cam_csv = root / "cam0" / "data.csv"
+    cam_lines, cam_rows = _read_rows(cam_csv, 2)
+    cam_t_ns = _parse_ns(cam_csv, cam_lines, [r[0] for r in cam_rows])
+    image_paths = []
+    for line_no, (_, name) in zip(cam_lines, cam_rows, strict=True):
+        image = root / "cam0" / "data" / name
+        if not image.is_file():
+            raise FileNotFoundError(f"{cam_csv}, line {line_no}: image file not found: {image}")
+        image_paths.append(image)
+
+    groundtruth = gt_bw = gt_ba = gt_t_ns = None
+    gt_path = root / "state_groundtruth_estimate0" / "data.csv"
+    if gt_path.exists():
+        gt_t_ns, gt = _read_numeric_csv(gt_path, 17)
+        quat = gt[:, 3:7]
+        norms = np.linalg.norm(quat, axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
+        if bad.size:
+            row = int(bad[0])
+            raise ValueError(f"{gt_path}: quaternion of data row {row + 1} has norm {norms[row]:.6f}")
+        groundtruth = TrajectoryArrays(_ns_to_s(gt_t_ns), gt[:, 0:3].copy(), quat / norms[:, None],
+                                       gt[:, 7:10].copy())
+        gt_bw, gt_ba = gt[:, 10:13].copy(), gt[:, 13:16].copy()
+
+    landmarks = None
+    lm_path = root / "sim_landmarks0" / "data.csv"
+    if lm_path.exists():
+        lm_lines, lm_rows = _read_rows(lm_path, 4)
+        landmarks = _parse_floats(lm_path, lm_lines, [r[1:] for r in lm_rows])
+
+    return EurocDataset(
+        root=root,
+        imu=imu,
+        cam_t_s=_ns_to_s(cam_t_ns),
+        image_paths=tuple(image_paths),
+        calib=calib,
+        imu_noise=imu_noise,
+        imu_rate_hz=imu_rate_hz,
+        groundtruth=groundtruth,
+        gt_gyro_bias=gt_bw,
+        gt_accel_bias=gt_ba,
+        landmarks_W=landmarks,
+        imu_t_ns=imu_t_ns,
+        cam_t_ns=cam_t_ns,
+        gt_t_ns=gt_t_ns,
+    )
+
+
+def load_image(dataset: EurocDataset, index: int) -> np.ndarray:
+    """Frame ``index`` as a grayscale uint8 image, shape (H, W), checked against ``cam0/sensor.yaml``.
+
+    Raises:
+        IndexError: Index out of range.
+        FileNotFoundError: The PNG is missing.
+        ValueError: The PNG cannot be decoded, is not 8-bit, or its size differs from the YAML resolution.
+    """
+    if not -len(dataset) <= index < len(dataset):
+        raise IndexError(f"frame index {index} out of range for {len(dataset)} frames in {dataset.root}")
+    path = dataset.image_paths[index]
+    if not path.is_file():
+        raise FileNotFoundError(f"image file not found: {path}")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"{path}: cannot decode image (corrupt or not a PNG)")
+    if image.dtype != np.uint8:
+        raise ValueError(f"{path}: expected an 8-bit image, got dtype {image.dtype}")
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    cam = dataset.calib.camera
+    if image.shape != (cam.height, cam.width):
+        raise ValueError(
+            f"{path}: image size {image.shape[1]}x{image.shape[0]} does not match the resolution "
+            f"{cam.width}x{cam.height} in cam0/sensor.yaml"
+        )
+    return image
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Writing.
+
+
+def _to_ns(t_s: np.ndarray, what: str) -> np.ndarray:
+    t_s = np.asarray(t_s, dtype=np.float64)
+    if t_s.ndim != 1 or not np.all(np.isfinite(t_s)):
+        raise ValueError(f"write_euroc: {what} times must be a finite 1-D array, got shape {t_s.shape}")
+    if np.any(t_s < 0.0):
+        raise ValueError(f"write_euroc: {what} times must be >= 0 s, got min {t_s.min()}")
+    t_ns = np.rint(t_s * _NS_PER_S).astype(np.int64)
+    bad = np.flatnonzero(np.diff(t_ns) <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"write_euroc: {what} times must strictly increase: [{i}]={t_s[i]}, [{i + 1}]={t_s[i + 1]}"
+        )
+    return t_ns
+
+
+def _fmt(values: np.ndarray) -> str:
+    return ",".join(repr(float(v)) for v in values)
+
+
+def _yaml_list(values: Iterable[float]) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+
+
+def _write_camera_yaml(path: Path, calib: CameraCalibration) -> None:
+    cam = calib.camera
+    T = np.eye(4)
+    T[:3, :3] = calib.R_BC
+    T[:3, 3] = calib.p_BC
+    rows = ",\n         ".join(", ".join(repr(float(v)) for v in T[i]) for i in range(4))
+    text = (
+        "%YAML:1.0\n"
+        "# General sensor definitions.\n"
+        "sensor_type: camera\n"
+        "comment: vio-testbed simulated camera (MuJoCo offscreen render)\n\n"
+        "# Sensor extrinsics wrt. the body-frame.\n"
+        "T_BS:\n  cols: 4\n  rows: 4\n"
+        f"  data: [{rows}]\n\n"
+        "# Camera specific definitions.\n"
+        f"rate_hz: {float(calib.rate_hz)!r}\n"
+        f"resolution: [{cam.width}, {cam.height}]\n"
+        "camera_model: pinhole\n"
+        f"intrinsics: {_yaml_list([cam.fx, cam.fy, cam.cx, cam.cy])} #fu, fv, cu, cv\n"
+        "distortion_model: radial-tangential\n"
+        f"distortion_coefficients: {_yaml_list(cam.distortion)}\n"
+        "# Clock offset (Kalibr convention): t_imu = t_cam + timeshift_cam_imu [s]\n"
+        f"timeshift_cam_imu: {float(calib.time_offset_s)!r}\n"
+    )
+    path.write_text(text)
+
+
+def _write_imu_yaml(path: Path, noise: ImuNoise, rate_hz: float) -> None:
+    text = (
+        "%YAML:1.0\n"
+        "sensor_type: imu\n"
+        "comment: vio-testbed simulated IMU\n\n"
+        "# Sensor extrinsics wrt. the body-frame (the body frame is the IMU frame).\n"
+        "T_BS:\n  cols: 4\n  rows: 4\n"
+        "  data: [1.0, 0.0, 0.0, 0.0,\n         0.0, 1.0, 0.0, 0.0,\n"
+        "         0.0, 0.0, 1.0, 0.0,\n         0.0, 0.0, 0.0, 1.0]\n"
+        f"rate_hz: {float(rate_hz)!r}\n\n"
+        "# inertial sensor noise model parameters (static)\n"
+        f"gyroscope_noise_density: {noise.gyro_noise_density_rad_s_sqrthz!r}     # [ rad / s / sqrt(Hz) ]\n"
+        f"gyroscope_random_walk: {noise.gyro_random_walk_rad_s2_sqrthz!r}       # [ rad / s^2 / sqrt(Hz) ]\n"
+        f"accelerometer_noise_density: {noise.accel_noise_density_m_s2_sqrthz!r}  # [ m / s^2 / sqrt(Hz) ]\n"
+        f"accelerometer_random_walk: {noise.accel_random_walk_m_s3_sqrthz!r}    # [ m / s^3 / sqrt(Hz) ]\n"
+    )
+    path.write_text(text)
+
+
+def write_euroc(
+    out_dir: Path | str,
+    imu: ImuSeries,
+    frames: Iterable[tuple[float, np.ndarray]],
+    calib: CameraCalibration,
+    imu_noise: ImuNoise,
+    groundtruth: TrajectoryArrays | None = None,
+    gt_gyro_bias: np.ndarray | None = None,
+    gt_accel_bias: np.ndarray | None = None,
+    landmarks_W: np.ndarray | None = None,
+    imu_rate_hz: float | None = None,
+) -> Path:
+    """Write a EuRoC ASL tree under ``out_dir/mav0`` and return the ``mav0`` path.
+
+    Args:
+        out_dir: Output folder (created).
+        imu: IMU readings (times >= 0 s, strictly increasing).
+        frames: ``(t_cam_s, image)`` pairs in time order; images (H, W) uint8 of the calibration's size.
+            Consumed lazily, so a generator can render frame by frame.
+        calib: Camera calibration (cam0 ``sensor.yaml``).
+        imu_noise: Densities for ``imu0/sensor.yaml``.
+        groundtruth: Poses of B in W with velocities (zeros are written when ``v_WB`` is None).
+        gt_gyro_bias: True gyro bias at the ground-truth times (rad/s), shape (M, 3); zeros if None.
+        gt_accel_bias: True accelerometer bias (m/s^2), shape (M, 3); zeros if None.
+        landmarks_W: Landmark positions (m), shape (L, 3), written to ``sim_landmarks0/data.csv``.
+        imu_rate_hz: Nominal IMU rate; default from the median sample spacing.
+    """
+    mav0 = Path(out_dir) / "mav0"
+    imu_dir, cam_dir = mav0 / "imu0", mav0 / "cam0"
+    (cam_dir / "data").mkdir(parents=True, exist_ok=True)
+    imu_dir.mkdir(parents=True, exist_ok=True)
+
+    imu_t_ns = _to_ns(imu.t_s, "IMU")
+    n = len(imu_t_ns)
+    if imu.gyro_B_rad_s.shape != (n, 3) or imu.accel_B_m_s2.shape != (n, 3):
+        raise ValueError(f"write_euroc: IMU arrays must be ({n}, 3)")
+    values = np.hstack([imu.gyro_B_rad_s, imu.accel_B_m_s2])
+    if not np.all(np.isfinite(values)):
+        row = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
+        raise ValueError(f"write_euroc: IMU row {row} is not finite: {values[row].tolist()}")
+    with (imu_dir / "data.csv").open("w", newline="") as handle:
+        handle.write(IMU_HEADER + "\n")
+        handle.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(imu_t_ns, values, strict=True))
+    if imu_rate_hz is None:
+        imu_rate_hz = float(1.0 / np.median(np.diff(imu.t_s))) if n > 1 else 200.0
+    _write_imu_yaml(imu_dir / "sensor.yaml", imu_noise, imu_rate_hz)
+    _write_camera_yaml(cam_dir / "sensor.yaml", calib)
+
+    cam = calib.camera
+    last_ns = -1
+    with (cam_dir / "data.csv").open("w", newline="") as handle:
+        handle.write(CAM_HEADER + "\n")
+        for i, (t_s, image) in enumerate(frames):
+            t_ns = int(_to_ns(np.array([t_s]), "camera")[0])
+            if t_ns <= last_ns:
+                raise ValueError(f"write_euroc: camera times must strictly increase, frame {i} at {t_s} s")
+            image = np.asarray(image)
+            if image.dtype != np.uint8 or image.shape != (cam.height, cam.width):
+                raise ValueError(
+                    f"write_euroc: frame {i} must be uint8 of shape ({cam.height}, {cam.width}), "
+                    f"got {image.dtype} {image.shape}"
+                )
+            name = f"{t_ns}.png"
+            if not cv2.imwrite(str(cam_dir / "data" / name), image):
+                raise ValueError(f"write_euroc: could not write {cam_dir / 'data' / name}")
+            handle.write(f"{t_ns},{name}\n")
+            last_ns = t_ns
+
+    if groundtruth is not None:
+        gt_dir = mav0 / "state_groundtruth_estimate0"
+        gt_dir.mkdir(parents=True, exist_ok=True)
+        m = len(groundtruth)
+        gt_t_ns = _to_ns(groundtruth.t_s, "ground-truth")
+        zeros = np.zeros((m, 3))
+        v = zeros if groundtruth.v_WB is None else groundtruth.v_WB
+        bw = zeros if gt_gyro_bias is None else np.asarray(gt_gyro_bias, dtype=float)
+        ba = zeros if gt_accel_bias is None else np.asarray(gt_accel_bias, dtype=float)
+        table = np.hstack([groundtruth.p_WB, groundtruth.quat_wxyz_WB, v, bw, ba])
+        if table.shape != (m, 16):
+            raise ValueError(f"write_euroc: ground-truth arrays must all have {m} rows, got {table.shape}")
+        with (gt_dir / "data.csv").open("w", newline="") as handle:
+            handle.write(GT_HEADER + "\n")
+            handle.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(gt_t_ns, table, strict=True))
+        (gt_dir / "sensor.yaml").write_text(
+            "%YAML:1.0\nsensor_type: visual-inertial\ncomment: vio-testbed simulation ground truth (exact).\n"
+        )
+
+    if landmarks_W is not None:
+        landmarks_W = np.asarray(landmarks_W, dtype=float)
+        if landmarks_W.ndim != 2 or landmarks_W.shape[1] != 3:
+            raise ValueError(f"write_euroc: landmarks_W must be (L, 3), got {landmarks_W.shape}")
+        lm_dir = mav0 / "sim_landmarks0"
+        lm_dir.mkdir(parents=True, exist_ok=True)
+        with (lm_dir / "data.csv").open("w", newline="") as handle:
+            handle.write(LANDMARK_HEADER + "\n")
+            handle.writelines(f"{i},{_fmt(p)}\n" for i, p in enumerate(landmarks_W))
+    return mav0
