@@ -103,6 +103,7 @@ def select_gl_backend(
     """
     explicit = os.environ.get("MUJOCO_GL")
     if explicit:
+        _bind_mujoco_context(explicit.lower().strip())
         return explicit
     os.environ["MUJOCO_GL"] = "egl"
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")

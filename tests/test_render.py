@@ -213,12 +213,27 @@ def test_chase_camera_renders_the_drone(room):
     assert rgb[110:130, 150:170].mean() < rgb.mean()
 
 
+def test_bench_render_smoke():
+    from viotb.envs.bench_render import bench_render
+
+    result = bench_render(repeats=1, frames=1, physics_steps=10)
+    for key in ("render_gray_ms_320x240", "render_gray_ms_640x480", "render_depth_ms_320x240"):
+        assert 0.0 < result[key] < 1000.0
+    assert result["physics_steps_per_s"] > 1000.0
+    with pytest.raises(ValueError, match="counts must be positive"):
+        bench_render(repeats=0)
+
+
 def test_select_gl_backend_honours_explicit_value(monkeypatch):
+    bound = []
+    monkeypatch.setattr(render_mod, "_bind_mujoco_context", bound.append)
     monkeypatch.setenv("MUJOCO_GL", "osmesa")
     assert select_gl_backend(egl_probe=lambda: True) == "osmesa"
+    assert bound == ["osmesa"]
 
 
 def test_select_gl_backend_prefers_egl(monkeypatch):
+    monkeypatch.setattr(render_mod, "_bind_mujoco_context", lambda backend: None)
     monkeypatch.delenv("MUJOCO_GL", raising=False)
     monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
     assert select_gl_backend(egl_probe=lambda: True, osmesa_probe=lambda: True) == "egl"
