@@ -178,6 +178,26 @@ def demo(
     _emit(result, as_json, f"demo {scenario}")
 
 
+@app.command()
+def bench(
+    section: list[str] = typer.Option(
+        None, "--section", help="render | record | estimator | closed_loop (repeatable; all by default)."
+    ),
+    seconds: float = typer.Option(10.0, "--seconds", help="Simulated seconds of each timed run."),
+    repeats: int = typer.Option(3, "--repeats", help="Repeats per timed figure (medians reported)."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """Speed benchmarks: render ms/frame, physics steps/s, record/closed-loop real-time factors."""
+    from viotb.envs.bench import SECTIONS, run_bench
+
+    try:
+        with _progress("bench", not as_json) as progress:
+            result = run_bench(tuple(section) if section else SECTIONS, seconds, repeats, progress)
+    except ValueError as exc:
+        _fail(str(exc))
+    _emit(result, as_json, "bench")
+
+
 def main() -> None:
     """Entry point of the ``viotb`` console script."""
     app()

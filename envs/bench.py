@@ -1,0 +1,91 @@
+"""``viotb bench``: the speed figures the issues ask for, as one JSON object.
+
+Figures are medians over repeats (software GL has a slow mode about one run in ten) and real-time factors
+(simulated seconds per wall second), so they read as ratios on a noisy machine. Sections:
+
+- ``render``: render ms/frame at 320x240 and 640x480, physics steps/s (:mod:`viotb.envs.bench_render`);
+- ``record``: real-time factor of ``viotb record figure8`` (320x240, 20 Hz camera, 200 Hz IMU);
+- ``estimator``: MSCKF median / p99 ms per frame (KLT tracking + update) on that recording;
+- ``closed_loop``: ``realtime_factor`` of ``viotb fly fly-hover`` with the image front end and in sim mode.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+ProgressFn = Callable[[float, float], None]
+
+SECTIONS = ("render", "record", "estimator", "closed_loop")
+
+
+def run_bench(
+    sections: tuple[str, ...] = SECTIONS,
+    seconds: float = 10.0,
+    repeats: int = 3,
+    progress: ProgressFn | None = None,
+) -> dict:
+    """Run the selected benchmark sections.
+
+    Args:
+        sections: Subset of :data:`SECTIONS`.
+        seconds: Simulated duration of the record and closed-loop runs (s).
+        repeats: Repeats of each timed run (medians are reported).
+        progress: Optional ``(done, total)`` callback over sections.
+
+    Raises:
+        ValueError: Unknown section.
+    """
+    unknown = set(sections) - set(SECTIONS)
+    if unknown:
+        raise ValueError(f"unknown bench sections {sorted(unknown)}; allowed: {list(SECTIONS)}")
+    out: dict = {"seconds": seconds, "repeats": repeats}
+    done = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        rec_dir = Path(tmp) / "figure8"
+        if "render" in sections:
+            from viotb.envs.bench_render import bench_render
+
+            out["render"] = bench_render(repeats=max(repeats, 3))
+        done += 1
+        if progress:
+            progress(done, len(SECTIONS))
+        if "record" in sections or "estimator" in sections:
+            from viotb.envs.record import record_scenario
+
+            rtfs = []
+            for k in range(repeats if "record" in sections else 1):
+                rec = record_scenario("figure8", rec_dir, seed=k, seconds=seconds)
+                rtfs.append(rec["realtime_factor"])
+            out["record"] = {"scenario": "figure8", "realtime_factor_median": float(np.median(rtfs)), **rec}
+        done += 1
+        if progress:
+            progress(done, len(SECTIONS))
+        if "estimator" in sections:
+            from viotb.envs.evaluate import EvalOptions, evaluate_dataset
+
+            ev = evaluate_dataset(rec_dir, Path(tmp) / "eval", EvalOptions("msckf", "klt"))
+            out["estimator"] = {
+                k: ev.get(k) for k in ("ms_per_frame_median", "ms_per_frame_p99", "frames", "ate_posyaw_m")
+            }
+        done += 1
+        if progress:
+            progress(done, len(SECTIONS))
+        if "closed_loop" in sections:
+            from viotb.envs.fly import fly
+
+            cl = {}
+            for frontend in ("klt", "sim"):
+                rtfs = [
+                    fly("fly-hover", "msckf", seconds, k, frontend)[0]["realtime_factor"]
+                    for k in range(repeats)
+                ]
+                cl[f"realtime_factor_{frontend}_median"] = float(np.median(rtfs))
+            out["closed_loop"] = cl
+        done += 1
+        if progress:
+            progress(done, len(SECTIONS))
+    return out
