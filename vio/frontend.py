@@ -108,6 +108,19 @@ class KltTracker:
         self._prev_ids = np.zeros(0, dtype=np.int64)
         self._next_id = 0
         self._focal_px = 0.5 * (camera.fx + camera.fy)
+        self._dist = np.array(camera.distortion, dtype=float)
+        self._undistort_criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
+
+    def undistort(self, uv_px: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) -> undistorted normalized coordinates (N, 2) with OpenCV's iterative inverse."""
+        uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
+        if not self.camera.has_distortion or len(uv) == 0:
+            return self.camera.undistort_points(uv) if len(uv) else np.zeros((0, 2))
+        out = cv2.undistortPoints(
+            uv.reshape(-1, 1, 2), self.camera.K, self._dist, R=np.eye(3), P=np.eye(3),
+            criteria=self._undistort_criteria,
+        )
+        return out.reshape(-1, 2)
 
     def _check_image(self, image: np.ndarray) -> np.ndarray:
         img = np.asarray(image)
@@ -144,8 +157,8 @@ class KltTracker:
         good &= self.camera.in_image(p1.astype(float), p.border_px)
         pts, ids, prev = p1[good], self._prev_ids[good], self._prev_pts[good]
         if len(pts) >= 8:
-            a = self.camera.undistort_points(prev.astype(float)) * self._focal_px
-            b = self.camera.undistort_points(pts.astype(float)) * self._focal_px
+            a = self.undistort(prev) * self._focal_px
+            b = self.undistort(pts) * self._focal_px
             _, inl = cv2.findFundamentalMat(
                 a, b, cv2.FM_RANSAC, p.ransac_threshold_px, p.ransac_confidence
             )
@@ -227,7 +240,7 @@ class KltTracker:
             ids = np.concatenate([ids, new_ids])
         self._prev_img, self._prev_pts, self._prev_ids = img, pts.astype(np.float32), ids
         uv = pts.astype(float)
-        return Tracks(frame.t_s, t_imu_s, ids, self.camera.undistort_points(uv), uv)
+        return Tracks(frame.t_s, t_imu_s, ids, self.undistort(uv), uv)
 
 
 class SimFeatureTracker:

@@ -1,0 +1,126 @@
+"""Tests of vio/state.py: named blocks, covariance bookkeeping against closed forms."""
+
+import numpy as np
+import pytest
+
+from viotb.vio.lie import exp_so3
+from viotb.vio.state import (
+    EXTRINSIC_BLOCK,
+    IMU_BLOCK,
+    POS,
+    THETA,
+    TIME_OFFSET_BLOCK,
+    ImuValues,
+    State,
+    augment_clone,
+    ekf_propagate,
+    ekf_update,
+    is_psd,
+    marginal_covariance,
+    marginalize,
+    marginalize_oldest_clone,
+)
+
+
+def _random_spd(rng: np.random.Generator, n: int) -> np.ndarray:
+    A = rng.normal(size=(n, n))
+    return A @ A.T / n + 0.1 * np.eye(n)
+
+
+def _state(rng: np.random.Generator, calib: bool = True) -> State:
+    imu = ImuValues(exp_so3(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3), np.zeros(3), np.zeros(3))
+    return State(
+        0.0, imu, _random_spd(rng, 15), np.eye(3), np.zeros(3), 0.0,
+        extrinsic_cov=_random_spd(rng, 6) * 1e-3 if calib else None, time_offset_var_s2=1e-4 if calib else None,
+    )
+
+
+def _assert_sym_psd(st: State) -> None:
+    np.testing.assert_allclose(st.cov, st.cov.T, atol=1e-12)
+    assert np.linalg.eigvalsh(st.cov).min() > -1e-10
+    assert is_psd(st)
+
+
+def test_blocks_are_contiguous_and_named():
+    st = _state(np.random.default_rng(0))
+    assert [b.name for b in st.blocks] == [IMU_BLOCK, EXTRINSIC_BLOCK, TIME_OFFSET_BLOCK]
+    assert st.dim == 22
+    with pytest.raises(ValueError, match="no state block 'nope'"):
+        st.block("nope")
+
+
+def test_augment_clone_copies_pose_covariance_and_time_offset_jacobian():
+    rng = np.random.default_rng(0)
+    st = _state(rng)
+    omega = rng.normal(size=3)
+    P0 = st.cov.copy()
+    blk = augment_clone(st, 1.0, omega)
+    J = np.zeros((6, 22))
+    J[0:3, THETA:THETA + 3] = np.eye(3)
+    J[3:6, POS:POS + 3] = np.eye(3)
+    J[0:3, 21] = omega
+    J[3:6, 21] = st.imu.v_WB
+    np.testing.assert_allclose(marginal_covariance(st, [blk]), J @ P0 @ J.T, atol=1e-12)
+    np.testing.assert_allclose(st.cov[blk.indices, :22], J @ P0, atol=1e-12)
+    _assert_sym_psd(st)
+    with pytest.raises(ValueError, match="not newer"):
+        augment_clone(st, 0.5, omega)
+
+
+def test_marginalize_removes_rows_and_keeps_the_rest():
+    rng = np.random.default_rng(0)
+    st = _state(rng, calib=False)
+    for t in (1.0, 2.0, 3.0):
+        augment_clone(st, t)
+    keep = [st.block(IMU_BLOCK), st.clone_block(1.0), st.clone_block(3.0)]
+    expected = marginal_covariance(st, keep)
+    marginalize(st, st.clone_block(2.0))
+    assert list(st.clones) == [1.0, 3.0]
+    assert st.dim == 27 and st.clone_block(3.0).offset == 21
+    np.testing.assert_allclose(st.cov, expected, atol=0.0)
+    assert marginalize_oldest_clone(st) == 1.0
+    assert st.dim == 21
+    _assert_sym_psd(st)
+
+
+def test_ekf_update_matches_textbook_kalman_and_boxplus():
+    rng = np.random.default_rng(0)
+    st = _state(rng, calib=False)
+    augment_clone(st, 1.0)
+    P = st.cov.copy()
+    H = rng.normal(size=(5, st.dim))
+    r = rng.normal(size=5) * 0.1
+    R = np.diag(rng.uniform(0.1, 0.5, 5))
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    p_before = st.imu.p_WB.copy()
+    R_before = st.imu.R_WB.copy()
+    dx = ekf_update(st, H, r, R)
+    np.testing.assert_allclose(dx, K @ r, atol=1e-12)
+    np.testing.assert_allclose(st.cov, (np.eye(st.dim) - K @ H) @ P, atol=1e-10)
+    np.testing.assert_allclose(st.imu.p_WB, p_before + dx[POS:POS + 3], atol=1e-14)
+    np.testing.assert_allclose(st.imu.R_WB, R_before @ exp_so3(dx[0:3]), atol=1e-14)
+    _assert_sym_psd(st)
+    with pytest.raises(ValueError, match="do not match"):
+        ekf_update(st, H[:, :5], r, R)
+
+
+def test_ekf_propagate_closed_form_and_psd():
+    rng = np.random.default_rng(0)
+    st = _state(rng, calib=False)
+    augment_clone(st, 1.0)
+    P = st.cov.copy()
+    phi = np.eye(15) + 0.1 * rng.normal(size=(15, 15))
+    Q = _random_spd(rng, 15) * 1e-3
+    F = np.eye(st.dim)
+    F[:15, :15] = phi
+    Qf = np.zeros((st.dim, st.dim))
+    Qf[:15, :15] = Q
+    ekf_propagate(st, phi, Q)
+    np.testing.assert_allclose(st.cov, F @ P @ F.T + Qf, atol=1e-12)
+    _assert_sym_psd(st)
+
+
+def test_bad_covariance_shape_is_a_clear_error():
+    imu = ImuValues(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
+    with pytest.raises(ValueError, match="imu_cov must have shape"):
+        State(0.0, imu, np.eye(14), np.eye(3), np.zeros(3))
