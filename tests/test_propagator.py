@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from viotb.vio.lie import exp_so3, log_so3, skew
 from viotb.vio.propagator import (
     ImuBuffer,

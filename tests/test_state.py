@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from viotb.vio.lie import exp_so3
 from viotb.vio.state import (
     EXTRINSIC_BLOCK,

@@ -1,0 +1,91 @@
+"""Tests of vio/update_helpers.py: feature Jacobians vs finite differences, null space, compression, chi2."""
+
+import numpy as np
+import pytest
+import scipy.stats
+from viotb.vio.lie import exp_so3
+from viotb.vio.update_helpers import Chi2Table, feature_jacobian, measurement_compress, nullspace_project
+
+
+def _setup(rng):
+    R_WB = exp_so3(rng.normal(size=3))
+    p_WB = rng.normal(size=3)
+    R_BC = exp_so3(rng.normal(0, 0.3, 3))
+    p_BC = rng.normal(0, 0.1, 3)
+    # A feature 4 m in front of the camera.
+    p_WC = p_WB + R_WB @ p_BC
+    p_f = p_WC + R_WB @ R_BC @ np.array([0.3, -0.2, 4.0])
+    return R_WB, p_WB, R_BC, p_BC, p_f
+
+
+def test_feature_jacobian_matches_central_differences():
+    rng = np.random.default_rng(0)
+    R_WB, p_WB, R_BC, p_BC, p_f = _setup(rng)
+    jac = feature_jacobian(R_WB, p_WB, R_BC, p_BC, p_f)
+    eps = 1e-6
+
+    def z(dpose=np.zeros(6), dext=np.zeros(6), df=np.zeros(3)):
+        return feature_jacobian(
+            R_WB @ exp_so3(dpose[:3]), p_WB + dpose[3:], R_BC @ exp_so3(dext[:3]), p_BC + dext[3:], p_f + df
+        ).z_norm
+
+    for name, H, size, key in (("pose", jac.H_pose, 6, "dpose"), ("ext", jac.H_extrinsic, 6, "dext"),
+                               ("feature", jac.H_feature, 3, "df")):
+        num = np.zeros((2, size))
+        for i in range(size):
+            d = np.zeros(size)
+            d[i] = eps
+            num[:, i] = (z(**{key: d}) - z(**{key: -d})) / (2 * eps)
+        np.testing.assert_allclose(H, num, atol=1e-8, err_msg=name)
+
+
+def test_feature_jacobian_broadcasts_over_features_and_clones():
+    rng = np.random.default_rng(1)
+    R_WB = np.stack([exp_so3(rng.normal(0, 0.1, 3)) for _ in range(4)])
+    p_WB = rng.normal(0, 0.2, (4, 3))
+    p_f = rng.normal(0, 1, (5, 3)) + np.array([0, 0, 6.0])
+    batch = feature_jacobian(R_WB[None], p_WB[None], np.eye(3), np.zeros(3), p_f[:, None])
+    assert batch.H_pose.shape == (5, 4, 2, 6)
+    one = feature_jacobian(R_WB[2], p_WB[2], np.eye(3), np.zeros(3), p_f[3])
+    np.testing.assert_allclose(batch.H_pose[3, 2], one.H_pose, atol=1e-15)
+    np.testing.assert_allclose(batch.z_norm[3, 2], one.z_norm, atol=1e-15)
+
+
+def test_nullspace_projection_annihilates_the_feature_jacobian():
+    rng = np.random.default_rng(0)
+    m, n = 14, 30
+    H_f = rng.normal(size=(m, 3))
+    H_x = rng.normal(size=(m, n))
+    r = rng.normal(size=m)
+    H_o, r_o = nullspace_project(H_x, H_f, r)
+    assert H_o.shape == (m - 3, n) and r_o.shape == (m - 3,)
+    H_ff, _ = nullspace_project(H_f, H_f, r)
+    assert np.linalg.norm(H_ff) < 1e-10
+    # Independent check: the projected system carries the same information as the orthogonal projector.
+    Pn = np.eye(m) - H_f @ np.linalg.solve(H_f.T @ H_f, H_f.T)
+    np.testing.assert_allclose(H_o.T @ H_o, H_x.T @ Pn @ H_x, atol=1e-10)
+    np.testing.assert_allclose(H_o.T @ r_o, H_x.T @ Pn @ r, atol=1e-10)
+    # The lesson's 1-D example: the projected residual does not depend on the landmark guess.
+    with pytest.raises(ValueError, match="needs more than"):
+        nullspace_project(H_x[:3], H_f[:3], r[:3])
+
+
+def test_measurement_compress_preserves_information():
+    rng = np.random.default_rng(0)
+    H = rng.normal(size=(200, 40))
+    r = rng.normal(size=200)
+    Hc, rc = measurement_compress(H, r)
+    assert Hc.shape == (40, 40) and rc.shape == (40,)
+    np.testing.assert_allclose(Hc.T @ Hc, H.T @ H, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(Hc.T @ rc, H.T @ r, rtol=1e-10, atol=1e-9)
+    small_H, small_r = measurement_compress(H[:10], r[:10])
+    assert small_H.shape == (10, 40)
+
+
+def test_chi2_table_matches_scipy():
+    table = Chi2Table(50)
+    dof = np.array([1, 3, 17, 50])
+    np.testing.assert_allclose(table(dof), scipy.stats.chi2.ppf(0.95, dof), rtol=1e-12)
+    assert table(1) == pytest.approx(3.841458820694124, rel=1e-12)
+    with pytest.raises(ValueError, match="outside"):
+        table(51)
