@@ -1,4 +1,4 @@
-"""Tests of vio/propagator.py: interpolation, transition matrix vs finite differences, FEJ null space, noise."""
+"""Tests of vio/propagator.py: interpolation, transition matrix vs finite differences, FEJ, noise."""
 
 import numpy as np
 import pytest
@@ -151,12 +151,14 @@ def test_propagate_and_clone_keeps_covariance_psd_and_time_offset_jacobian():
     st = run(0.002)
     assert is_psd(st)
     np.testing.assert_allclose(st.cov, st.cov.T, atol=1e-15)
-    assert np.all(np.diag(marginal_covariance(st, [st.block(IMU_BLOCK)])) > np.diag(np.eye(15) * 1e-4) - 1e-12)
+    imu_var = np.diag(marginal_covariance(st, [st.block(IMU_BLOCK)]))
+    assert np.all(imu_var > 1e-4 - 1e-12)
     # The clone at camera time 0.1 depends on the offset through [omega; v] (checked by central differences).
     eps = 1e-5
     cp, cm = run(0.002 + eps).clones[0.1], run(0.002 - eps).clones[0.1]
     c = st.clones[0.1]
-    num = np.concatenate([(log_so3(c.R_WB.T @ cp.R_WB) - log_so3(c.R_WB.T @ cm.R_WB)), cp.p_WB - cm.p_WB]) / (2 * eps)
+    dtheta = log_so3(c.R_WB.T @ cp.R_WB) - log_so3(c.R_WB.T @ cm.R_WB)
+    num = np.concatenate([dtheta, cp.p_WB - cm.p_WB]) / (2 * eps)
     blk = st.clone_block(0.1)
     td = st.block("time_offset").offset
     # cross-covariance / var(td) = Jacobian of the clone w.r.t. td at cloning time (time offset is static)

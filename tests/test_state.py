@@ -27,10 +27,12 @@ def _random_spd(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def _state(rng: np.random.Generator, calib: bool = True) -> State:
-    imu = ImuValues(exp_so3(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3), np.zeros(3), np.zeros(3))
+    imu = ImuValues(exp_so3(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3), np.zeros(3),
+                    np.zeros(3))
     return State(
         0.0, imu, _random_spd(rng, 15), np.eye(3), np.zeros(3), 0.0,
-        extrinsic_cov=_random_spd(rng, 6) * 1e-3 if calib else None, time_offset_var_s2=1e-4 if calib else None,
+        extrinsic_cov=_random_spd(rng, 6) * 1e-3 if calib else None,
+        time_offset_var_s2=1e-4 if calib else None,
     )
 
 

@@ -24,7 +24,10 @@ def test_feature_jacobian_matches_central_differences():
     jac = feature_jacobian(R_WB, p_WB, R_BC, p_BC, p_f)
     eps = 1e-6
 
-    def z(dpose=np.zeros(6), dext=np.zeros(6), df=np.zeros(3)):
+    def z(dpose=None, dext=None, df=None):
+        dpose = np.zeros(6) if dpose is None else dpose
+        dext = np.zeros(6) if dext is None else dext
+        df = np.zeros(3) if df is None else df
         return feature_jacobian(
             R_WB @ exp_so3(dpose[:3]), p_WB + dpose[3:], R_BC @ exp_so3(dext[:3]), p_BC + dext[3:], p_f + df
         ).z_norm
