@@ -1,0 +1,96 @@
+"""Tests of vio/frontend.py: KLT (known shift, real EuRoC frames), simulated tracker, feature database."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from viotb.vio.camera import PinholeCamera
+from viotb.vio.frontend import FeatureDatabase, KltParams, KltTracker, SimFeatureTracker
+from viotb.vio.types import CameraFrame, FeatureObservations
+
+EUROC_CAM = Path("/work/shared/data/euroc_v1_01_micro/mav0/cam0")
+
+
+def _texture(rng: np.random.Generator, h: int = 240, w: int = 320) -> np.ndarray:
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)).astype(np.float32), (0, 0), 2.0)
+    img = (img - img.min()) / (img.max() - img.min()) * 255.0
+    return img.astype(np.uint8)
+
+
+def _shift(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    M = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]])
+    return cv2.warpAffine(img, M, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def test_klt_tracks_a_known_shift():
+    rng = np.random.default_rng(0)
+    cam = PinholeCamera.from_fovy(320, 240, 60.0)
+    trk = KltTracker(cam)
+    img0 = _texture(rng)
+    a = trk.process(CameraFrame(0.0, image=img0), 0.0)
+    assert 120 <= len(a) <= KltParams().max_features
+    b = trk.process(CameraFrame(0.05, image=_shift(img0, 2.3, -1.7)), 0.05)
+    common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    assert len(common) > 0.8 * len(a)
+    d = b.uv_px[ib] - a.uv_px[ia]
+    np.testing.assert_allclose(np.median(d, axis=0), [2.3, -1.7], atol=0.05)
+    # Undistorted normalized coordinates of an undistorted camera: (u - cx) / fx.
+    np.testing.assert_allclose(b.xy_norm[:, 0], (b.uv_px[:, 0] - cam.cx) / cam.fx, atol=1e-12)
+
+
+def test_klt_blank_missing_and_wrong_size_images():
+    cam = PinholeCamera.from_fovy(320, 240, 60.0)
+    trk = KltTracker(cam)
+    assert len(trk.process(CameraFrame(0.0, image=np.full((240, 320), 128, np.uint8)), 0.0)) == 0
+    assert len(trk.process(CameraFrame(0.1, image=None), 0.1)) == 0
+    assert len(trk.process(CameraFrame(0.2, image=np.zeros((0, 0), np.uint8)), 0.2)) == 0
+    with pytest.raises(ValueError, match=r"image shape \(480, 640\) does not match the camera \(240x320"):
+        trk.process(CameraFrame(0.3, image=np.zeros((480, 640), np.uint8)), 0.3)
+
+
+def test_klt_on_real_euroc_frames_of_a_still_rig():
+    files = sorted((EUROC_CAM / "data").glob("*.png"))[:3]
+    cam = PinholeCamera(752, 480, 458.654, 457.296, 367.215, 248.375,
+                        (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05))
+    trk = KltTracker(cam)
+    tracks = [trk.process(CameraFrame(float(i), image=cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)), float(i))
+              for i, f in enumerate(files)]
+    assert all(len(t) >= 140 for t in tracks)  # target 180; FAST finds ~150 corners on frame 0
+    common, ia, ib = np.intersect1d(tracks[0].ids, tracks[2].ids, return_indices=True)
+    assert len(common) > 0.9 * len(tracks[0])
+    assert np.median(np.linalg.norm(tracks[2].uv_px[ib] - tracks[0].uv_px[ia], axis=1)) < 0.2
+    # Normalized coordinates re-distort to the measured pixels (OpenCV undistortion vs our camera model).
+    np.testing.assert_allclose(cam.normalized_to_pixels(tracks[2].xy_norm), tracks[2].uv_px, atol=1e-6)
+
+
+def test_sim_tracker_undistorts_and_handles_empty():
+    cam = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5, (-0.2, 0.05, 0.001, 0.0))
+    xy = np.array([[0.1, -0.2], [0.0, 0.0], [-0.3, 0.25]])
+    obs = FeatureObservations(np.array([4, 9, 2]), cam.normalized_to_pixels(xy))
+    t = SimFeatureTracker(cam).process(CameraFrame(1.0, features=obs), 1.01)
+    np.testing.assert_allclose(t.xy_norm, xy, atol=1e-9)
+    assert t.ids.tolist() == [4, 9, 2] and t.t_imu_s == 1.01
+    assert len(SimFeatureTracker(cam).process(CameraFrame(1.0), 1.0)) == 0
+
+
+def test_feature_database_queries():
+    db = FeatureDatabase(max_frames=3, initial_features=2)
+    db.add(1.0, np.array([10, 11, 12]), np.array([[0.0, 0.0], [0.1, 0.1], [0.2, 0.2]]))
+    db.add(2.0, np.array([10, 12, 13]), np.array([[0.01, 0.0], [0.2, 0.21], [0.3, 0.3]]))
+    assert db.features_lost(2.0).tolist() == [11]
+    assert sorted(db.features_seen_at(1.0).tolist()) == [10, 11, 12]
+    assert db.track_lengths(np.array([10, 11, 13, 99])).tolist() == [2, 1, 1, 0]
+    xy, mask = db.observations(np.array([12, 13]), np.array([1.0, 2.0]))
+    assert mask.tolist() == [[True, True], [False, True]]
+    np.testing.assert_allclose(xy[0], [[0.2, 0.2], [0.2, 0.21]])
+    db.remove_frame(1.0)
+    assert db.num_features == 3  # 11 had only the removed frame
+    db.add(3.0, np.array([13]), np.array([[0.31, 0.3]]))
+    db.add(4.0, np.array([13]), np.array([[0.32, 0.3]]))
+    db.add(5.0, np.array([13]), np.array([[0.33, 0.3]]))  # full: evicts the oldest frame (2.0)
+    np.testing.assert_allclose(db.frame_times, [3.0, 4.0, 5.0])
+    assert db.track_lengths(np.array([13, 10])).tolist() == [3, 0]
+    db.remove_features(np.array([13]))
+    assert db.num_features == 0
