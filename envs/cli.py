@@ -14,6 +14,7 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="vio-testbed: VIO in the loop.")
@@ -65,6 +66,7 @@ def _fail(message: str) -> None:
 @app.command()
 def scenarios(as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout.")) -> None:
     """List the scenarios with one-line descriptions."""
+    import viotb.envs.fly  # noqa: F401  (registers the closed-loop scenarios)
     from viotb.envs.scenarios import list_scenarios
 
     items = list_scenarios()
@@ -73,7 +75,8 @@ def scenarios(as_json: bool = typer.Option(False, "--json", help="Print JSON on 
         return
     console = Console()
     for item in items:
-        console.print(f"[bold]{item['name']:<28}[/bold] [{item['kind']}] {item['description']}")
+        kind = escape(f"[{item['kind']}]")
+        console.print(f"[bold]{item['name']:<28}[/bold] {kind:<9} {item['description']}")
 
 
 @app.command()

@@ -95,8 +95,8 @@ def _fly_scenarios() -> dict[str, FlyScenario]:
         ),
         FlyScenario(
             "fly-gyro-saturation",
-            "an aggressive roll manoeuvre with a +-250 deg/s gyro that saturates",
-            rig=RigConfig(imu_preset="consumer-mems"),
+            "an aggressive roll manoeuvre with a +-125 deg/s gyro that saturates",
+            rig=RigConfig(imu_preset="bmi088-125dps"),
             mission="aggressive",
             default_seconds=20.0,
         ),
@@ -105,6 +105,31 @@ def _fly_scenarios() -> dict[str, FlyScenario]:
 
 
 FLY_SCENARIOS = _fly_scenarios()
+
+
+def _register_fly_scenarios() -> None:
+    """List the closed-loop scenarios in the shared registry (``viotb scenarios``) as kind ``fly``."""
+    from viotb.envs.scenarios import Scenario, get_scenario, register
+
+    for sc in FLY_SCENARIOS.values():
+        try:
+            get_scenario(sc.name)
+        except ValueError:
+            register(
+                Scenario(
+                    name=sc.name,
+                    description=sc.description,
+                    kind="fly",
+                    vehicle="quadrotor",
+                    scene=sc.rig.scene,
+                    default_seconds=sc.default_seconds,
+                    imu_preset=sc.rig.imu_preset,
+                    camera=sc.rig.camera,
+                )
+            )
+
+
+_register_fly_scenarios()
 
 
 def get_fly_scenario(name: str) -> FlyScenario:

@@ -14,7 +14,7 @@ The first sample uses the turn-on bias ``b_0``; the bias advances after each sam
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from viotb.vio.types import ImuNoise, ImuSample, ImuSeries
@@ -80,6 +80,28 @@ class ImuModelParams:
         return 1.0 / self.rate_hz
 
 
+# Bosch BMI088-like consumer MEMS part (drones, headsets): datasheet densities (gyro 0.014 deg/s/sqrtHz,
+# accel 175 ug/sqrtHz at the +-24 g range) inflated for vibration, larger turn-on biases and scale errors.
+_BMI088 = ImuModelParams(
+    rate_hz=200.0,
+    noise=ImuNoise(
+        gyro_noise_density_rad_s_sqrthz=0.014 * _DEG * 2.0,
+        gyro_random_walk_rad_s2_sqrthz=1.0e-4,
+        accel_noise_density_m_s2_sqrthz=175e-6 * _G * 2.0,
+        accel_random_walk_m_s3_sqrthz=1.0e-2,
+    ),
+    gyro_turn_on_bias_sigma_rad_s=1.0 * _DEG,
+    accel_turn_on_bias_sigma_m_s2=0.2,
+    gyro_scale_sigma=1e-2,
+    accel_scale_sigma=5e-3,
+    misalignment_sigma_rad=0.5 * _DEG,
+    gyro_quantization_rad_s=2000.0 * _DEG / 32768.0,
+    accel_quantization_m_s2=24.0 * _G / 32768.0,
+    gyro_range_rad_s=2000.0 * _DEG,
+    accel_range_m_s2=24.0 * _G,
+)
+
+
 _PRESETS: dict[str, ImuModelParams] = {
     # Analog Devices ADIS16448 (EuRoC's VI-sensor IMU). Densities from EuRoC imu0/sensor.yaml; ranges,
     # LSB sizes and misalignment from the ADIS16448 datasheet (rev. D); turn-on biases sized like the
@@ -97,25 +119,15 @@ _PRESETS: dict[str, ImuModelParams] = {
         gyro_range_rad_s=1000.0 * _DEG,
         accel_range_m_s2=18.0 * _G,
     ),
-    # Bosch BMI088-like consumer MEMS part (drones, headsets): datasheet densities (gyro 0.014 deg/s/sqrtHz,
-    # accel 175 ug/sqrtHz at the +-24 g range) inflated for vibration, larger turn-on biases and scale errors.
-    "bmi088": ImuModelParams(
-        rate_hz=200.0,
-        noise=ImuNoise(
-            gyro_noise_density_rad_s_sqrthz=0.014 * _DEG * 2.0,
-            gyro_random_walk_rad_s2_sqrthz=1.0e-4,
-            accel_noise_density_m_s2_sqrthz=175e-6 * _G * 2.0,
-            accel_random_walk_m_s3_sqrthz=1.0e-2,
-        ),
-        gyro_turn_on_bias_sigma_rad_s=1.0 * _DEG,
-        accel_turn_on_bias_sigma_m_s2=0.2,
-        gyro_scale_sigma=1e-2,
-        accel_scale_sigma=5e-3,
-        misalignment_sigma_rad=0.5 * _DEG,
-        gyro_quantization_rad_s=2000.0 * _DEG / 32768.0,
-        accel_quantization_m_s2=24.0 * _G / 32768.0,
-        gyro_range_rad_s=2000.0 * _DEG,
-        accel_range_m_s2=24.0 * _G,
+    "bmi088": _BMI088,
+    # The same BMI088 configured at its most sensitive ranges (+-125 deg/s, +-3 g): finer steps, but an
+    # aggressive manoeuvre saturates it (the lesson's "sudden jump" failure mode).
+    "bmi088-125dps": replace(
+        _BMI088,
+        gyro_quantization_rad_s=125.0 * _DEG / 32768.0,
+        accel_quantization_m_s2=3.0 * _G / 32768.0,
+        gyro_range_rad_s=125.0 * _DEG,
+        accel_range_m_s2=3.0 * _G,
     ),
     # Perfect sensor: no noise, no bias, no scale errors, no quantization, infinite range.
     "ideal": ImuModelParams(rate_hz=200.0, noise=ImuNoise(0.0, 0.0, 0.0, 0.0)),

@@ -1,0 +1,64 @@
+"""Closed-loop flights (envs/fly.py, envs/closed_loop.py): the drone flies on its own estimate."""
+
+import numpy as np
+import pytest
+
+from viotb.envs.closed_loop import ClosedLoopSim, RigConfig
+from viotb.envs.fly import FLY_SCENARIOS, fly
+
+
+def test_ground_truth_hover_holds_setpoint():
+    metrics, log = fly("fly-hover", "ground-truth", seconds=8.0, seed=0, frontend="sim")
+    assert not metrics["crashed"] and not metrics["diverged"]
+    # Truth feedback at 250 Hz: the geometric controller holds the point to well under a centimetre.
+    assert metrics["hover_rms_m"] < 0.005
+    phases = set(log.phase)
+    assert {"ground", "takeoff", "mission"} <= phases
+    # The drone really climbed: 1 m above its start.
+    assert np.asarray(log.p_true_W)[-1, 2] == pytest.approx(1.06, abs=0.02)
+
+
+def test_msckf_sim_features_holds_within_10cm():
+    metrics, _ = fly("fly-hover", "msckf", seconds=12.0, seed=1, frontend="sim")
+    assert not metrics["crashed"] and not metrics["diverged"]
+    assert metrics["init_time_s"] is not None
+    assert metrics["hover_rms_m"] < 0.10
+    assert metrics["max_err_m"] < 0.20
+
+
+def test_msckf_rendered_images_short_flight():
+    metrics, log = fly("fly-hover", "msckf", seconds=8.0, seed=2, frontend="klt")
+    assert not metrics["crashed"] and not metrics["diverged"]
+    assert metrics["hover_rms_m"] < 0.10
+    assert min(log.frame_features[len(log.frame_features) // 2 :]) >= 30
+
+
+@pytest.mark.slow
+def test_msckf_rendered_images_60s_hover():
+    metrics, _ = fly("fly-hover", "msckf", seconds=60.0, seed=3, frontend="klt")
+    assert not metrics["crashed"] and not metrics["diverged"]
+    assert metrics["hover_rms_m"] < 0.05
+
+
+def test_same_seed_same_flight():
+    a, log_a = fly("fly-hover", "msckf", seconds=4.0, seed=5, frontend="sim")
+    b, log_b = fly("fly-hover", "msckf", seconds=4.0, seed=5, frontend="sim")
+    np.testing.assert_array_equal(np.asarray(log_a.p_true_W), np.asarray(log_b.p_true_W))
+    np.testing.assert_array_equal(np.asarray(log_a.p_est_W), np.asarray(log_b.p_est_W))
+
+
+def test_bad_inputs_are_named():
+    with pytest.raises(ValueError, match="unknown closed-loop scenario 'nope'"):
+        fly("nope", "msckf")
+    with pytest.raises(ValueError, match="seconds must be positive"):
+        fly("fly-hover", "ground-truth", seconds=-1.0)
+    with pytest.raises(ValueError, match="msckf"):
+        fly("fly-hover", "kalman-magic", seconds=1.0)
+    with pytest.raises(ValueError, match="front end"):
+        ClosedLoopSim(RigConfig(frontend="orb"))
+
+
+def test_every_scenario_is_registered_with_a_description():
+    assert len(FLY_SCENARIOS) >= 8
+    for name, sc in FLY_SCENARIOS.items():
+        assert name.startswith("fly-") and sc.description
