@@ -92,3 +92,18 @@ def test_chi2_table_matches_scipy():
     assert table(1) == pytest.approx(3.841458820694124, rel=1e-12)
     with pytest.raises(ValueError, match="outside"):
         table(51)
+
+
+def test_measurement_jacobian_annihilates_the_unobservable_directions():
+    """Global translation and yaw move clone and feature together: H_pose N_clone + H_f N_f = 0."""
+    rng = np.random.default_rng(2)
+    R_WB, p_WB, R_BC, p_BC, p_f = _setup(rng)
+    jac = feature_jacobian(R_WB, p_WB, R_BC, p_BC, p_f)
+    ez = np.array([0.0, 0.0, 1.0])
+    skew_ez = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    N_clone = np.zeros((6, 4))
+    N_clone[3:6, 0:3] = np.eye(3)
+    N_clone[0:3, 3] = R_WB.T @ ez
+    N_clone[3:6, 3] = skew_ez @ p_WB
+    N_f = np.hstack([np.eye(3), (skew_ez @ p_f)[:, None]])
+    np.testing.assert_allclose(jac.H_pose @ N_clone + jac.H_feature @ N_f, 0.0, atol=1e-12)

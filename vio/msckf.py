@@ -3,8 +3,8 @@
 State: IMU ``[R_WB, p_WB, v_WB, b_g, b_a]``, optional camera-IMU extrinsic and time offset, and a sliding
 window of pose clones (:mod:`viotb.vio.state`). Each camera frame: propagate with the IMU to the frame time,
 try a zero-velocity update, clone the pose, and update with the features whose tracks ended (or that are
-about to lose their oldest clone). Landmarks never enter the state: they are triangulated, linearized and projected
-out with the left null space of their Jacobian.
+about to lose their oldest clone). Landmarks never enter the state: they are triangulated, linearized and
+projected out with the left null space of their Jacobian.
 
 Bad inputs: non-finite IMU values and non-increasing IMU times raise ``ValueError`` naming the value and the
 times (they are rejected, not skipped). A frame without image or features is the documented degraded mode:
@@ -118,6 +118,8 @@ class UpdateStats:
         used: Features that passed the gate and entered the update.
         rejected: Features rejected by the chi-square gate.
         rows: Measurement rows after null-space projection (before compression).
+        inconsistent: Features whose views admit no common point (triangulation reprojection error above
+            its gate), a divergence symptom when they dominate.
     """
 
     candidates: int = 0
@@ -125,6 +127,7 @@ class UpdateStats:
     used: int = 0
     rejected: int = 0
     rows: int = 0
+    inconsistent: int = 0
 
 
 def _init_fields(init: object) -> tuple[float, ImuValues, np.ndarray]:
@@ -372,15 +375,16 @@ class MsckfEstimator:
                 f"position sigma {pos_sigma:.1f} m exceeds max_position_sigma_m={p.max_position_sigma_m}"
             )
             return
-        gated = stats.used + stats.rejected
-        if gated >= p.runaway_min_features and stats.rejected > p.runaway_reject_ratio * gated:
+        bad = stats.rejected + stats.inconsistent
+        gated = stats.used + bad
+        if gated >= p.runaway_min_features and bad > p.runaway_reject_ratio * gated:
             self._runaway_count += 1
         elif gated >= p.runaway_min_features:
             self._runaway_count = 0
         if self._runaway_count >= p.runaway_frames:
             self._declare_divergence(
                 f"runaway innovation: more than {p.runaway_reject_ratio:.0%} of the features failed the chi2 "
-                f"gate in {self._runaway_count} consecutive frames"
+                f"gate or the triangulation reprojection gate in {self._runaway_count} consecutive frames"
             )
 
     def _try_zupt(self, tracks: Tracks, t_imu: float) -> bool:
@@ -464,8 +468,9 @@ class MsckfEstimator:
         tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, self._focal_px)
         ok = tri.valid
         n_cand = len(cand)
+        n_bad = int(np.sum(tri.rms_error_px >= p.triangulation.max_reprojection_error_px))
         if not np.any(ok):
-            return UpdateStats(candidates=n_cand)
+            return UpdateStats(candidates=n_cand, inconsistent=n_bad)
         xy, mask, p_f = xy[ok], mask[ok], tri.p_W[ok]
         F, K = mask.shape
         # 3. Residuals at the current estimates, Jacobians at the first estimates (FEJ).
@@ -499,7 +504,7 @@ class MsckfEstimator:
         dof = 2 * mask.sum(axis=1) - 3
         passed = chi2 < p.chi2_multiplier * self.chi2(dof)
         n_pass = int(passed.sum())
-        stats = UpdateStats(n_cand, F, n_pass, int(F - n_pass), int(dof[passed].sum()))
+        stats = UpdateStats(n_cand, F, n_pass, int(F - n_pass), int(dof[passed].sum()), n_bad)
         if n_pass == 0:
             return stats
         # 6. Stack, compress (QR) and update.
