@@ -1,4 +1,4 @@
-"""Tests of viotb.envs.gym_envs: Gymnasium contracts, determinism, rewards, errors (ground truth for speed)."""
+"""Tests of viotb.envs.gym_envs: Gymnasium contracts, determinism, rewards, errors (mostly ground truth)."""
 
 from __future__ import annotations
 
@@ -71,7 +71,9 @@ def test_check_env_msckf_sim_and_dict_observations():
     # samples (200 Hz IMU, 5 ms low-level loop), the newest last.
     assert obs["image"].shape == (240, 320, 1) and obs["image"].max() > 0
     last = env.unwrapped._loop.last_imu
-    np.testing.assert_array_equal(obs["imu"][-1], np.r_[last.gyro_B_rad_s, last.accel_B_m_s2].astype(np.float32))
+    np.testing.assert_array_equal(
+        obs["imu"][-1], np.r_[last.gyro_B_rad_s, last.accel_B_m_s2].astype(np.float32)
+    )
     assert len({tuple(row) for row in obs["imu"]}) == 4
     assert np.all(np.linalg.norm(obs["imu"][:, 3:], axis=1) > 5.0)  # specific force of a flying body
     env.close()
@@ -142,7 +144,9 @@ def test_orientation_features_against_independent_forms():
 
 
 def test_hover_position_hold_and_truth_only_in_info():
-    env = gymnasium.make("viotb/Hover-v0", action_type="position", randomization=DomainRandomization(), **FAST)
+    env = gymnasium.make(
+        "viotb/Hover-v0", action_type="position", randomization=DomainRandomization(), **FAST
+    )
     obs, info = env.reset(seed=0)
     names = env.unwrapped.state_names()
     assert len(names) == obs.shape[0] == 28
@@ -239,7 +243,9 @@ def test_domain_randomization_draws_from_reset_seed():
 
 
 def test_render_rgb_array_chase_and_onboard():
-    env = gymnasium.make("viotb/Hover-v0", render_mode="rgb_array", render_width=160, render_height=120, **FAST)
+    env = gymnasium.make(
+        "viotb/Hover-v0", render_mode="rgb_array", render_width=160, render_height=120, **FAST
+    )
     env.reset(seed=0)
     img = env.render()
     assert img.shape == (120, 160, 3) and img.dtype == np.uint8 and img.std() > 1.0
