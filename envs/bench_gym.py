@@ -1,0 +1,84 @@
+"""Throughput of the Gymnasium envs: env steps per second and real-time factor, printed as JSON.
+
+``python -m viotb.envs.bench_gym [--steps N] [--num-envs K] [--repeats R]`` measures ``viotb/Hover-v0`` with
+the ``position`` action (the SE(3) controller holds the point, so episodes do not end early) for three
+estimator set-ups (``ground-truth``, ``msckf`` + ``sim`` features, ``msckf`` + ``klt`` on rendered images),
+each as a single env and as a ``SyncVectorEnv`` of K copies. The real-time factor is
+``env steps/s * ctrl_dt`` (simulated seconds per wall second, summed over the vector's copies). Reset time is
+excluded; the median over repeats is reported (DESIGN.md: about one run in ten lands in a slower mode).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import gymnasium
+import numpy as np
+import viotb.envs  # noqa: F401  (registers the ids)
+
+SETUPS = {
+    "ground-truth": {"estimator": "ground-truth", "frontend": "sim"},
+    "msckf+sim": {"estimator": "msckf", "frontend": "sim"},
+    "msckf+klt": {"estimator": "msckf", "frontend": "klt"},
+}
+"""Set-up name -> env keyword arguments."""
+
+
+def _steps_per_s(env: gymnasium.Env, n_steps: int, n_copies: int, seed: int) -> float:
+    """Env steps per wall second over ``n_steps`` calls to ``step`` (after a reset, not timed)."""
+    env.reset(seed=seed)
+    action = np.zeros(env.action_space.shape, dtype=np.float32)
+    t0 = time.perf_counter()
+    for _ in range(n_steps):
+        env.step(action)
+    return n_copies * n_steps / (time.perf_counter() - t0)
+
+
+def bench(setup: str, n_steps: int, num_envs: int, repeats: int) -> dict:
+    """Median env steps/s and real-time factor of one set-up, single env and ``SyncVectorEnv``."""
+    kwargs = {"action_type": "position", **SETUPS[setup]}
+    single = gymnasium.make("viotb/Hover-v0", **kwargs)
+    ctrl_dt = single.unwrapped.dt
+    rates = [_steps_per_s(single, n_steps, 1, seed) for seed in range(repeats)]
+    single.close()
+    vec = gymnasium.vector.SyncVectorEnv(
+        [lambda: gymnasium.make("viotb/Hover-v0", **kwargs) for _ in range(num_envs)]
+    )
+    vec_rates = [_steps_per_s(vec, n_steps, num_envs, seed) for seed in range(repeats)]
+    vec.close()
+    single_rate, vec_rate = float(np.median(rates)), float(np.median(vec_rates))
+    return {
+        "ctrl_dt_s": ctrl_dt,
+        "single_steps_per_s": single_rate,
+        "single_realtime_factor": single_rate * ctrl_dt,
+        "vector_num_envs": num_envs,
+        "vector_steps_per_s": vec_rate,
+        "vector_realtime_factor": vec_rate * ctrl_dt,
+    }
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Parse arguments, run every set-up, print one JSON object (last line) and return it."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=200, help="env steps per measurement")
+    parser.add_argument("--num-envs", type=int, default=4, help="copies in the SyncVectorEnv")
+    parser.add_argument("--repeats", type=int, default=3, help="measurements per set-up (median reported)")
+    parser.add_argument(
+        "--setups", nargs="+", default=list(SETUPS), choices=list(SETUPS), help="set-ups to measure"
+    )
+    args = parser.parse_args(argv)
+    for name in ("steps", "num_envs", "repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    result = {setup: bench(setup, args.steps, args.num_envs, args.repeats) for setup in args.setups}
+    print(json.dumps(result))
+    return result
+
+
+if __name__ == "__main__":
+    main()
