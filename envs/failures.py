@@ -1,0 +1,415 @@
+"""The lesson's failure modes as scenarios with a severity knob, and a report that names and fixes each.
+
+Each :class:`FailureSpec` is registered three ways:
+
+* as an open-loop ``record`` scenario (``viotb record fail-...``) in :mod:`viotb.envs.scenarios`,
+* as a closed-loop :class:`~viotb.envs.fly.FlyScenario` in ``FLY_SCENARIOS`` where the rig can express it
+  (:func:`failure_fly_scenarios`),
+* and as a fast in-memory stream (:func:`synthesize_stream`: scripted truth -> IMU model -> projected scene
+  landmarks, no rendering) that :func:`failure_report` runs through the MSCKF with a
+  :class:`~viotb.vio.health.HealthMonitor`.
+
+Streams start with ``still_s`` seconds at rest (the trajectories start with zero derivatives, so holding the
+first sample is smooth) so that the estimator's static initializer can start it.
+
+:func:`failure_report` runs the failure at a severity, runs the *fix* of the lesson's catalog (online
+time-offset / extrinsic calibration, an excitation manoeuvre, coasting on the IMU, a calibrated IMU or a
+sensor rated for the motion), writes an error-vs-time PNG and returns the monitor's conditions and the
+numbers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from viotb.envs.camera_model import CameraModelParams
+from viotb.envs.imu_model import ImuModel, imu_preset
+from viotb.envs.scenarios import Scenario, get_scenario, register
+from viotb.envs.trajectories import TRAJECTORY_FACTORIES, MotionParams, Trajectory
+from viotb.vio.camera import CameraCalibration
+from viotb.vio.health import HealthMonitor, HealthParams, MonitoredRun, monitor_run
+from viotb.vio.lie import exp_so3, rotmat_to_quat_wxyz
+from viotb.vio.metrics import align_umeyama, scale_error_pct
+from viotb.vio.msckf import MsckfEstimator, MsckfParams
+from viotb.vio.types import CameraFrame, ImuSeries, TrajectoryArrays
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """One in-memory run (all physical knobs of a failure).
+
+    Attributes:
+        motion: Name in ``TRAJECTORY_FACTORIES``.
+        seconds: Duration (s) of the motion (after the still start).
+        speed_scale: Multiplies the motion's phase rate.
+        imu_preset: IMU part.
+        scene: Scene whose textured surfaces carry the landmarks.
+        still_s: Seconds at rest before the motion (for static initialization).
+        camera_rate_hz: Frame rate (Hz).
+        time_offset_s: True clock offset, ``t_imu = t_cam + offset`` (s).
+        assumed_time_offset_s: Offset (s) given to the estimator's calibration.
+        extrinsic_error_rad: Rotation error (rad, about the camera's optical axis and x) of the ``R_BC`` given
+            to the estimator.
+        extra_gyro_bias_rad_s: Constant gyro bias (rad/s, all axes) added to the readings.
+        accel_scale_error: Accelerometer scale-factor error (fraction) added to the readings.
+        landmark_count: Landmarks in the scene.
+        blackout_s: Camera blackout interval (start, end) in seconds of stream time, or None.
+        pixel_sigma_px: Pixel noise (px) of the projected features.
+    """
+
+    motion: str = "hover"
+    seconds: float = 12.0
+    speed_scale: float = 1.0
+    imu_preset: str = "adis16448"
+    scene: str = "textured_room"
+    still_s: float = 1.5
+    camera_rate_hz: float = 20.0
+    time_offset_s: float = 0.0
+    assumed_time_offset_s: float = 0.0
+    extrinsic_error_rad: float = 0.0
+    extra_gyro_bias_rad_s: float = 0.0
+    accel_scale_error: float = 0.0
+    landmark_count: int = 1500
+    blackout_s: tuple[float, float] | None = None
+    pixel_sigma_px: float = 0.5
+
+
+@dataclass
+class Stream:
+    """A synthesized run: IMU readings, frames, truth, and the calibration the estimator is given."""
+
+    imu: ImuSeries
+    frames: list[CameraFrame]
+    truth: TrajectoryArrays
+    calib_true: CameraCalibration
+    calib_given: CameraCalibration
+    noise: object
+    time_offset_s: float
+
+
+@dataclass(frozen=True)
+class _Delayed:
+    """Trajectory held at its first sample for ``still_s`` seconds (picklable)."""
+
+    base: Trajectory
+    still_s: float
+
+    def sample_many(self, t_s: np.ndarray):  # noqa: D102
+        return self.base.sample_many(np.maximum(np.asarray(t_s, dtype=float) - self.still_s, 0.0))
+
+
+def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
+    """Build IMU readings and simulated-feature frames for ``cfg`` without rendering.
+
+    Steps: sample the truth at the IMU rate, pass it through the IMU model (plus the injected bias/scale
+    errors), project the scene landmarks at the exposure instants ``k / rate`` (IMU clock) and stamp the
+    frames ``t_cam = t_imu - time_offset_s``.
+
+    Raises:
+        ValueError: Unknown motion or a non-positive duration.
+    """
+    if cfg.motion not in TRAJECTORY_FACTORIES:
+        known = sorted(TRAJECTORY_FACTORIES)
+        raise ValueError(f"StreamConfig.motion: unknown motion {cfg.motion!r}; known: {known}")
+    if not cfg.seconds > 0.0:
+        raise ValueError(f"StreamConfig.seconds must be > 0, got {cfg.seconds}")
+    from viotb.envs.landmarks import project_landmarks, scene_landmarks  # noqa: PLC0415 (imports mujoco)
+    from viotb.envs.render import camera_calibration  # noqa: PLC0415
+    from viotb.models import load_model  # noqa: PLC0415
+    from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES  # noqa: PLC0415
+
+    imu_seq, lm_seq, px_seq = np.random.SeedSequence(seed).spawn(3)
+    traj = _Delayed(TRAJECTORY_FACTORIES[cfg.motion](MotionParams(cfg.seconds, speed_scale=cfg.speed_scale)),
+                    cfg.still_s)
+    total_s = cfg.seconds + cfg.still_s
+    params = imu_preset(cfg.imu_preset)
+    t_imu = np.arange(int(np.floor(total_s * params.rate_hz + 1e-9)) + 1) / params.rate_hz
+    truth = traj.sample_many(t_imu)
+    f_B = truth.specific_force_B * (1.0 + cfg.accel_scale_error)
+    omega = truth.omega_B + cfg.extra_gyro_bias_rad_s
+    imu, _, _ = ImuModel(params, np.random.default_rng(imu_seq)).measure_series_with_biases(t_imu, omega, f_B)
+
+    model = load_model("quadrotor", cfg.scene)
+    calib = camera_calibration(model, ONBOARD_CAMERA, VEHICLE_BODIES["quadrotor"], 320, 240,
+                               cfg.time_offset_s, cfg.camera_rate_hz)
+    landmarks = scene_landmarks(model, np.random.default_rng(lm_seq), cfg.landmark_count)
+    rng = np.random.default_rng(px_seq)
+    t_exp = np.arange(1, int(np.floor(total_s * cfg.camera_rate_hz))) / cfg.camera_rate_hz
+    t_exp = t_exp[t_exp > cfg.time_offset_s + 1e-6]
+    cams = traj.sample_many(t_exp)
+    frames = []
+    for k, t in enumerate(t_exp):
+        R_WB, p_WB = cams.R_WB[k], cams.p_WB[k]
+        blank = cfg.blackout_s is not None and cfg.blackout_s[0] <= t < cfg.blackout_s[1]
+        obs = project_landmarks(
+            landmarks[:0] if blank else landmarks, R_WB @ calib.R_BC, p_WB + R_WB @ calib.p_BC, calib.camera,
+            rng, cfg.pixel_sigma_px,
+        )
+        frames.append(CameraFrame(t_s=float(t - cfg.time_offset_s), features=obs))
+    R_err = exp_so3(np.array([cfg.extrinsic_error_rad, 0.0, cfg.extrinsic_error_rad]) / np.sqrt(2.0))
+    given = replace(calib, R_BC=calib.R_BC @ R_err, time_offset_s=cfg.assumed_time_offset_s)
+    gt = TrajectoryArrays(t_imu, truth.p_WB, np.array([rotmat_to_quat_wxyz(R) for R in truth.R_WB]),
+                          truth.v_WB)
+    return Stream(imu, frames, gt, calib, given, params.noise, cfg.time_offset_s)
+
+
+# ----------------------------------------------------------------------------------------------- specs
+
+
+@dataclass(frozen=True)
+class FailureSpec:
+    """A failure mode of the lesson's catalog.
+
+    Attributes:
+        name: Scenario name (``fail-...``).
+        condition: Monitor condition that should name it (or "" when none is expected).
+        description: Symptom / cause, one line.
+        fix: The fix of the catalog that :func:`failure_report` applies.
+    """
+
+    name: str
+    condition: str
+    description: str
+    fix: str
+
+    def config(self, severity: float = 1.0) -> StreamConfig:
+        """The failing run at ``severity`` (0 = nominal, 1 = default, larger = worse)."""
+        s = float(severity)
+        if not (np.isfinite(s) and s >= 0.0):
+            raise ValueError(f"severity must be finite and >= 0, got {severity}")
+        n = self.name
+        if n == "fail-bad-init":
+            return StreamConfig(extra_gyro_bias_rad_s=0.3 * s, accel_scale_error=0.05 * s)
+        if n == "fail-no-excitation":
+            return StreamConfig(motion="line", seconds=8.0, speed_scale=1.0 + 0.5 * s)
+        if n == "fail-time-offset":
+            return StreamConfig(motion="circle", seconds=12.0, time_offset_s=0.01 * s, speed_scale=1.0 + s)
+        if n == "fail-extrinsic":
+            return StreamConfig(motion="circle", seconds=12.0, extrinsic_error_rad=np.deg2rad(2.0) * s,
+                                speed_scale=1.0 + s)
+        if n == "fail-feature-poverty":
+            return StreamConfig(motion="hover", landmark_count=max(int(1500 * (1.0 - 0.98 * min(s, 1.0))), 8),
+                                blackout_s=(6.0, 6.0 + 2.0 * s))
+        if n == "fail-gyro-saturation":
+            return StreamConfig(motion="aggressive", seconds=12.0, imu_preset="bmi088-125dps",
+                                speed_scale=0.5 + 0.5 * s)
+        if n == "fail-long-loop":
+            return StreamConfig(motion="long-loop", seconds=40.0 + 40.0 * s)
+        raise ValueError(f"unknown failure {n!r}")
+
+    def fixed(self, severity: float = 1.0) -> tuple[StreamConfig, MsckfParams]:
+        """The run with the catalog's fix applied, and the MSCKF settings of the fix."""
+        cfg = self.config(severity)
+        prm = MsckfParams(frontend="sim")
+        n = self.name
+        if n == "fail-bad-init":
+            cfg = replace(cfg, extra_gyro_bias_rad_s=0.0, accel_scale_error=0.0)
+        elif n == "fail-no-excitation":
+            cfg = replace(cfg, motion="hover", speed_scale=1.0)
+        elif n == "fail-time-offset":
+            prm = replace(prm, estimate_time_offset=True, time_offset_sigma_s=0.02)
+        elif n == "fail-extrinsic":
+            prm = replace(prm, estimate_extrinsics=True, extrinsic_sigma_rad=0.05)
+        elif n == "fail-gyro-saturation":
+            cfg = replace(cfg, imu_preset="bmi088")
+        return cfg, prm
+
+
+FAILURES: dict[str, FailureSpec] = {
+    f.name: f
+    for f in (
+        FailureSpec("fail-bad-init", "initialization_failure",
+                    "turn-on gyro bias 0.3 rad/s and 5 % accelerometer scale: wrong gravity / bias at init",
+                    "calibrated IMU (re-initialize after calibration)"),
+        FailureSpec("fail-no-excitation", "insufficient_excitation",
+                    "constant-velocity line: scale weakly observable",
+                    "excitation manoeuvre (hover Lissajous)"),
+        FailureSpec("fail-time-offset", "time_offset_suspected",
+                    "10 ms camera-IMU clock offset on a fast circle: error grows with speed",
+                    "online time-offset calibration (MsckfParams.estimate_time_offset)"),
+        FailureSpec("fail-extrinsic", "extrinsic_error_suspected",
+                    "2 deg camera-IMU rotation error on a fast circle", "online extrinsic calibration"),
+        FailureSpec("fail-feature-poverty", "feature_poverty",
+                    "30 landmarks and a 2 s blackout (blank wall / dark room)",
+                    "coast on the IMU (propagate only)"),
+        FailureSpec("fail-gyro-saturation", "imu_saturation",
+                    "aggressive manoeuvre past a +-125 deg/s gyro",
+                    "an IMU rated for the motion (+-2000 deg/s)"),
+        FailureSpec("fail-long-loop", "",
+                    "long loop back to the start: steady odometry drift",
+                    "none in odometry (needs loop closure)"),
+    )
+}
+"""The failure scenarios by name."""
+
+
+def _register_record_scenarios() -> None:
+    """Register each failure (default severity) as an open-loop ``record`` scenario."""
+    for spec in FAILURES.values():
+        try:
+            get_scenario(spec.name)
+            continue
+        except ValueError:
+            pass
+        cfg = spec.config(1.0)
+        cam = CameraModelParams(rate_hz=cfg.camera_rate_hz, pixel_noise_std=2.0,
+                                time_offset_s=cfg.time_offset_s,
+                                blackout_intervals_s=(cfg.blackout_s,) if cfg.blackout_s else ())
+        scene = "blank_wall" if spec.name == "fail-feature-poverty" else cfg.scene
+        register(Scenario(spec.name, spec.description, "record", "quadrotor", scene, cfg.seconds,
+                          cfg.imu_preset,
+                          cam, _MotionFactory(cfg.motion, cfg.speed_scale)))
+
+
+@dataclass(frozen=True)
+class _MotionFactory:
+    """Picklable ``duration_s -> Trajectory`` with a speed scale."""
+
+    motion: str
+    speed_scale: float = 1.0
+
+    def __call__(self, duration_s: float) -> Trajectory:
+        return TRAJECTORY_FACTORIES[self.motion](MotionParams(duration_s, speed_scale=self.speed_scale))
+
+
+def failure_fly_scenarios() -> dict:
+    """Closed-loop versions of the failures that the rig can express, as ``FlyScenario`` objects."""
+    from viotb.envs.closed_loop import RigConfig  # noqa: PLC0415
+    from viotb.envs.fly import FlyScenario  # noqa: PLC0415
+
+    items = [
+        FlyScenario("fly-fail-time-offset", "figure-8 with a 10 ms camera clock offset the estimator ignores",
+                    rig=RigConfig(camera=CameraModelParams(time_offset_s=0.01)), mission="figure8",
+                    default_seconds=25.0),
+        FlyScenario("fly-fail-feature-poverty", "hover in front of a blank wall with a 3 s blackout",
+                    rig=RigConfig(scene="blank_wall", start_p_W_m=(3.0, 0.0, 0.06),
+                                  camera=CameraModelParams(blackout_intervals_s=((10.0, 13.0),))),
+                    default_seconds=20.0),
+        FlyScenario("fly-fail-gyro-saturation", "aggressive flight with a +-125 deg/s gyro",
+                    rig=RigConfig(imu_preset="bmi088-125dps"), mission="aggressive", default_seconds=20.0),
+    ]
+    return {s.name: s for s in items}
+
+
+def register_fly_failures() -> None:
+    """Add :func:`failure_fly_scenarios` to ``viotb.envs.fly.FLY_SCENARIOS`` and the shared registry."""
+    from viotb.envs import fly  # noqa: PLC0415
+
+    for name, sc in failure_fly_scenarios().items():
+        fly.FLY_SCENARIOS.setdefault(name, sc)
+    fly._register_fly_scenarios()  # noqa: SLF001 (idempotent: skips registered names)
+
+
+_register_record_scenarios()
+register_fly_failures()
+
+
+# ----------------------------------------------------------------------------------------------- running
+
+
+@dataclass
+class RunResult:
+    """One monitored MSCKF run over a stream."""
+
+    t_s: np.ndarray
+    err_m: np.ndarray
+    run: MonitoredRun
+    stream: Stream
+    metrics: dict = field(default_factory=dict)
+
+
+def run_stream(
+    stream: Stream, params: MsckfParams | None = None, health: HealthParams | None = None
+) -> RunResult:
+    """Run the MSCKF (sim front end) with a monitor over a stream and measure position error vs time.
+
+    The error is taken after a 4-DOF (yaw + translation) alignment of the whole estimated trajectory;
+    ``metrics`` holds ``ate_m``, ``final_err_m``, ``scale_error_pct`` (sim(3) fit on the positions),
+    ``init_time_s``, ``diverged``, ``time_offset_est_s``.
+    """
+    prm = params if params is not None else MsckfParams(frontend="sim")
+    est = MsckfEstimator(stream.calib_given, stream.noise, replace(prm, frontend="sim"))
+    run = monitor_run(est, stream.imu, stream.frames, stream.time_offset_s, HealthMonitor(health))
+    ok = [i for i, e in enumerate(run.estimates) if e is not None and np.all(np.isfinite(e.p_WB))]
+    out = RunResult(np.zeros(0), np.zeros(0), run, stream)
+    m: dict = {"init_time_s": None, "ate_m": float("nan"), "final_err_m": float("nan"),
+               "scale_error_pct": float("nan"), "diverged": any(h.diverged for h in run.health),
+               "time_offset_est_s": None}
+    if len(ok) >= 3:
+        t = np.array([run.estimates[i].t_s for i in ok])
+        p_est = np.array([run.estimates[i].p_WB for i in ok])
+        gt = stream.truth
+        p_gt = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
+        al = align_umeyama(p_est, p_gt, "posyaw")
+        err = np.linalg.norm(al.apply(p_est) - p_gt, axis=1)
+        out.t_s, out.err_m = t, err
+        m.update(init_time_s=float(t[0]), ate_m=float(np.sqrt(np.mean(err**2))), final_err_m=float(err[-1]),
+                 scale_error_pct=float(scale_error_pct(p_est, p_gt)))
+        st = getattr(est, "state", None)
+        if st is not None and prm.estimate_time_offset:
+            m["time_offset_est_s"] = float(st.time_offset_s)
+    out.metrics = m
+    return out
+
+
+def _plot(path: Path, title: str, runs: dict[str, RunResult]) -> None:
+    """Position error vs time of each run (PNG)."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for label, r in runs.items():
+        ax.plot(r.t_s, r.err_m, label=label)
+        for c in r.run.monitor.report():
+            ax.axvline(c.t_s_first, ls=":", lw=0.8, color="gray")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("position error (m, 4-DOF aligned)")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def failure_report(name: str, out_dir: Path | str, seed: int = 0, severity: float = 1.0) -> dict:
+    """Run failure ``name`` and its fix, plot error vs time and report what the monitor said.
+
+    Args:
+        name: A key of :data:`FAILURES`.
+        out_dir: Folder for ``<name>_error.png`` (created).
+        seed: Seed of the stream.
+        severity: Failure severity (0 = nominal).
+
+    Returns:
+        ``{"name", "severity", "seed", "expected_condition", "conditions": [{name, t_s_first, evidence}],
+        "detected", "detection_time_s", "fix", "failing": metrics, "fixed": metrics, "plot"}``.
+    """
+    if name not in FAILURES:
+        raise ValueError(f"unknown failure {name!r}; known: {sorted(FAILURES)}")
+    spec = FAILURES[name]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    bad = run_stream(synthesize_stream(spec.config(severity), seed))
+    cfg_fix, prm_fix = spec.fixed(severity)
+    good = run_stream(synthesize_stream(cfg_fix, seed), prm_fix)
+    plot = out / f"{name}_error.png"
+    _plot(plot, f"{name} (severity {severity})", {"failing": bad, f"fix: {spec.fix}": good})
+    conds = bad.run.monitor.report()
+    return {
+        "name": name,
+        "severity": float(severity),
+        "seed": int(seed),
+        "expected_condition": spec.condition,
+        "conditions": [{"name": c.name, "t_s_first": c.t_s_first, "evidence": c.evidence} for c in conds],
+        "detected": spec.condition in {c.name for c in conds} if spec.condition else None,
+        "detection_time_s": bad.run.monitor.first_time(spec.condition) if spec.condition else None,
+        "fix": spec.fix,
+        "failing": bad.metrics,
+        "fixed": good.metrics,
+        "fixed_conditions": [c.name for c in good.run.monitor.report()],
+        "plot": str(plot),
+    }
