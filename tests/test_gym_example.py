@@ -1,0 +1,56 @@
+"""The stable-baselines3 hover example runs end to end (a few hundred steps) and reports both estimators."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "train_hover_sb3.py"
+
+
+def _load_example():
+    spec = importlib.util.spec_from_file_location("train_hover_sb3", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_kinematic_observation_drops_health_entries():
+    example = _load_example()
+    env = example.make_env("msckf", "sim", "position", episode_steps=5)
+    obs, _ = env.reset(seed=0)
+    names = env.unwrapped.state_names()
+    assert obs.shape == (len(names) - 7,)  # 3 + 3 covariance entries and the feature count
+    assert env.observation_space.contains(obs)
+    full = env.unwrapped._get_obs()
+    kept = [i for i, n in enumerate(names) if not n.startswith(example.HEALTH_PREFIXES)]
+    np.testing.assert_array_equal(obs, full[kept])
+    env.close()
+
+
+def test_train_and_evaluate_few_hundred_steps(capsys):
+    pytest.importorskip(
+        "stable_baselines3", reason="the 'rl' extra (stable-baselines3, torch) is not installed"
+    )
+    example = _load_example()
+    result = example.main(["--timesteps", "256", "--episode-steps", "40", "--eval-episodes", "1"])
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed == result
+    for name in ("ground_truth", "msckf_sim"):
+        r = result[name]
+        assert r["episodes"] == 1 and 1 <= r["steps"] <= 40
+        assert np.isfinite(r["mean_return"]) and r["hover_rms_m"] >= 0.0
+    assert result["ground_truth"]["estimate_rms_m"] == 0.0  # truth passed through
+    assert result["msckf_sim"]["estimate_rms_m"] > 0.0
+    assert result["gap"]["mean_return"] == pytest.approx(
+        result["ground_truth"]["mean_return"] - result["msckf_sim"]["mean_return"], abs=1e-12
+    )
+    assert gymnasium.spec("viotb/Hover-v0") is not None
