@@ -401,6 +401,11 @@ class VioQuadEnv(gymnasium.Env):
         self._imu: deque = deque(maxlen=cfg.imu_window)
 
     @property
+    def rig(self) -> ClosedLoopSim | None:
+        """The current episode's closed-loop rig (simulation, sensors, estimator), for diagnostics."""
+        return self._loop
+
+    @property
     def dt(self) -> float:
         """Policy step (s) = ``ctrl_dt``."""
         return self.config.ctrl_dt

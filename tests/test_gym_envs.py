@@ -70,7 +70,7 @@ def test_check_env_msckf_sim_and_dict_observations():
     # A gray onboard image arrives (20 Hz camera, 0.1 s elapsed); the IMU rows are the last 4 distinct
     # samples (200 Hz IMU, 5 ms low-level loop), the newest last.
     assert obs["image"].shape == (240, 320, 1) and obs["image"].max() > 0
-    last = env.unwrapped._loop.last_imu
+    last = env.unwrapped.rig.last_imu
     np.testing.assert_array_equal(
         obs["imu"][-1], np.r_[last.gyro_B_rad_s, last.accel_B_m_s2].astype(np.float32)
     )
@@ -235,7 +235,7 @@ def test_domain_randomization_draws_from_reset_seed():
     masses = []
     for seed in (0, 0, 1):
         env.reset(seed=seed)
-        m = env.unwrapped._loop.sim.model
+        m = env.unwrapped.rig.sim.model
         masses.append(float(m.body_mass[m.body("quadrotor").id]))
     assert masses[0] == masses[1] != masses[2]
     assert all(0.8 * 1.2 <= x <= 1.2 * 1.2 for x in masses)
