@@ -201,6 +201,38 @@ def bench(
     _emit(result, as_json, "bench")
 
 
+@app.command()
+def regress(
+    update: bool = typer.Option(False, "--update", help="Rewrite the baseline with this run (deliberate)."),
+    full: bool = typer.Option(False, "--full", help="Run the full set (adds longer and faster cases)."),
+    baseline: Path = typer.Option(None, "--baseline", help="Baseline JSON (default benchmarks/...)."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """Drift regression suite: seeded runs vs the committed baseline; exits 1 on a regression."""
+    from rich.table import Table
+    from viotb.envs.regress import DEFAULT_BASELINE
+    from viotb.envs.regress import regress as run_regress
+
+    path = baseline if baseline is not None else DEFAULT_BASELINE
+    try:
+        passed, rows, result = run_regress(path, update=update, full=full)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(str(exc))
+    if as_json:
+        print(json.dumps({"passed": passed, "rows": rows, "result": result}, indent=2, default=float))
+    else:
+        table = Table(title=f"regress vs {path}" + (" (baseline updated)" if update else ""))
+        for col in ("case", "metric", "value", "baseline", "limit", "ok"):
+            table.add_column(col)
+        for r in rows:
+            vals = (r["value"], r["baseline"], r["limit"])
+            fmt = [f"{x:.4g}" if isinstance(x, float) else str(x) for x in vals]
+            table.add_row(r["case"], r["metric"], *fmt, "ok" if r["ok"] else "[red]REGRESSION[/red]")
+        _err.print(table)
+    if not passed:
+        raise typer.Exit(1)
+
+
 def main() -> None:
     """Entry point of the ``viotb`` console script."""
     app()

@@ -1,0 +1,208 @@
+"""Drift regression suite (``viotb regress``): fixed seeded runs compared with a committed baseline.
+
+Short set (default): in-memory open-loop streams of :mod:`viotb.envs.failures` (hover, circle, line; no
+rendering) evaluated with the MSCKF and the simulated front end, plus one closed-loop ``fly-hover`` with the
+simulated front end. ``full`` adds a fast circle and the 60 s long loop.
+
+Metrics per case: ``ate_m`` (4-DOF aligned RMS), ``final_err_m``, ``drift_pct`` (final error / path length),
+``scale_error_pct`` (absolute), ``nees_pos`` (mean position NEES), and ``timing_ratio`` (ms per frame divided
+by a reference workload -- a fixed NumPy matrix loop -- timed in the same process, so the machine's speed
+cancels). Runs are deterministic for a seed, so accuracy tolerances are tight; timing is loose.
+
+A metric regresses when ``value > baseline + abs_tol + rel_tol * |baseline|`` (all metrics are
+"lower is better"); tolerances are stored per metric in the baseline JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from viotb.envs.failures import StreamConfig, run_stream, synthesize_stream
+from viotb.vio.metrics import align_umeyama
+from viotb.vio.msckf import MsckfParams
+
+DEFAULT_BASELINE = Path(__file__).resolve().parent.parent / "benchmarks" / "regress_baseline.json"
+"""The committed baseline."""
+
+TOLERANCES = {
+    "ate_m": {"rel": 0.05, "abs": 0.005},
+    "final_err_m": {"rel": 0.10, "abs": 0.01},
+    "drift_pct": {"rel": 0.10, "abs": 0.1},
+    "scale_error_pct": {"rel": 0.10, "abs": 0.5},
+    "nees_pos": {"rel": 0.25, "abs": 0.5},
+    "timing_ratio": {"rel": 1.0, "abs": 0.5},
+}
+"""Default per-metric tolerances written into a new baseline."""
+
+SHORT_CASES = {
+    "hover-sim": StreamConfig(motion="hover", seconds=10.0, landmark_count=600),
+    "circle-sim": StreamConfig(motion="circle", seconds=10.0, landmark_count=600),
+    "line-sim": StreamConfig(motion="line", seconds=8.0, landmark_count=600),
+}
+FULL_CASES = {
+    "circle-fast-sim": StreamConfig(motion="circle", seconds=10.0, speed_scale=1.5, landmark_count=600),
+    "long-loop-sim": StreamConfig(motion="long-loop", seconds=60.0, landmark_count=600),
+}
+
+
+def reference_ms() -> float:
+    """Median wall time (ms) of a fixed NumPy workload (50 solves of a 60 x 60 system)."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(60, 60)) + 60.0 * np.eye(60)
+    b = rng.normal(size=60)
+    out = []
+    for _ in range(15):
+        t0 = time.perf_counter()
+        for _ in range(50):
+            np.linalg.solve(A, b)
+        out.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(out))
+
+
+def _stream_case(cfg: StreamConfig, seed: int, params: MsckfParams, ref_ms: float) -> dict:
+    stream = synthesize_stream(cfg, seed)
+    t0 = time.perf_counter()
+    res = run_stream(stream, params)
+    ms = (time.perf_counter() - t0) * 1e3 / max(len(res.run.health), 1)
+    m = res.metrics
+    path = float(np.sum(np.linalg.norm(np.diff(stream.truth.p_WB, axis=0), axis=1)))
+    # Position NEES after the 4-DOF (yaw + translation) alignment of the whole run (the gauge of VIO).
+    nees = []
+    ests = [e for e in res.run.estimates if e is not None and np.all(np.isfinite(e.p_WB))]
+    if len(ests) >= 3:
+        p_est = np.array([e.p_WB for e in ests])
+        t = np.array([e.t_s for e in ests])
+        p_gt = np.stack([np.interp(t, stream.truth.t_s, stream.truth.p_WB[:, j]) for j in range(3)], axis=1)
+        al = align_umeyama(p_est, p_gt, "posyaw")
+        for e, d in zip(ests, al.apply(p_est) - p_gt, strict=True):
+            P = al.R @ e.cov[3:6, 3:6] @ al.R.T
+            nees.append(float(d @ np.linalg.solve(P, d)))
+    return {
+        "ate_m": m["ate_m"],
+        "final_err_m": m["final_err_m"],
+        "drift_pct": 100.0 * m["final_err_m"] / path if path > 0 else float("nan"),
+        "scale_error_pct": abs(m["scale_error_pct"]),
+        "nees_pos": float(np.mean(nees)) if nees else float("nan"),
+        "timing_ratio": ms / ref_ms,
+        "diverged": bool(m["diverged"]),
+    }
+
+
+def _fly_case(seed: int, ref_ms: float) -> dict:
+    from viotb.envs.fly import fly  # noqa: PLC0415
+
+    t0 = time.perf_counter()
+    m, log = fly("fly-hover", estimator="msckf", seconds=10.0, seed=seed, frontend="sim")
+    ms = (time.perf_counter() - t0) * 1e3 / max(len(log.frame_t_s), 1)
+    return {
+        "ate_m": m["ate_posyaw_m"] if m["ate_posyaw_m"] is not None else float("nan"),
+        "final_err_m": m["max_err_m"] if m["max_err_m"] is not None else float("nan"),
+        "hover_rms_m": m["hover_rms_m"] if m["hover_rms_m"] is not None else float("nan"),
+        "timing_ratio": ms / ref_ms,
+        "diverged": bool(m["diverged"]),
+    }
+
+
+def run_suite(
+    full: bool = False, seed: int = 0, params: MsckfParams | None = None, fly_case: bool = True,
+    only: tuple[str, ...] | None = None,
+) -> dict:
+    """Run the fixed cases; returns ``{"reference_ms", "cases": {name: metrics}}``.
+
+    Args:
+        full: Add the full-set cases.
+        seed: Seed of every case.
+        params: MSCKF settings (a deliberately degraded one makes the suite fail; tests use this).
+        fly_case: Include the closed-loop ``fly-hover`` case.
+        only: Run only these open-loop cases (None = all of the set).
+    """
+    prm = replace(params if params is not None else MsckfParams(), frontend="sim")
+    ref = reference_ms()
+    cases = dict(SHORT_CASES)
+    if full:
+        cases.update(FULL_CASES)
+    if only is not None:
+        cases = {k: v for k, v in cases.items() if k in only}
+    out = {name: _stream_case(cfg, seed, prm, ref) for name, cfg in cases.items()}
+    if fly_case:
+        out["fly-hover-sim"] = _fly_case(seed, ref)
+    return {"reference_ms": ref, "seed": seed, "cases": out}
+
+
+def load_baseline(path: Path | str) -> dict:
+    """Read a baseline JSON (FileNotFoundError / ValueError naming the file)."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"regress baseline {p} not found (create it with `viotb regress --update`)")
+    try:
+        data = json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"regress baseline {p}: invalid JSON ({exc})") from None
+    for key in ("cases", "tolerances"):
+        if key not in data:
+            raise ValueError(f"regress baseline {p}: missing field {key!r}")
+    return data
+
+
+def compare(result: dict, baseline: dict) -> list[dict]:
+    """Rows ``{case, metric, value, baseline, limit, ok}`` for every metric present in both.
+
+    A NaN value where the baseline is finite, a divergence the baseline did not have, and a missing case
+    all fail.
+    """
+    rows = []
+    tol = baseline["tolerances"]
+    for case, base in baseline["cases"].items():
+        cur = result["cases"].get(case)
+        if cur is None:
+            rows.append({"case": case, "metric": "(missing)", "value": None, "baseline": None, "limit": None,
+                         "ok": False})
+            continue
+        if cur.get("diverged") and not base.get("diverged"):
+            rows.append({"case": case, "metric": "diverged", "value": True, "baseline": False, "limit": False,
+                         "ok": False})
+        for metric, b in base.items():
+            if metric == "diverged" or metric not in tol or metric not in cur:
+                continue
+            v = cur[metric]
+            if b is None or not np.isfinite(b):
+                continue
+            limit = b + tol[metric]["abs"] + tol[metric]["rel"] * abs(b)
+            ok = v is not None and bool(np.isfinite(v)) and v <= limit
+            rows.append({"case": case, "metric": metric, "value": v, "baseline": b, "limit": limit, "ok": ok})
+    return rows
+
+
+def write_baseline(path: Path | str, result: dict, tolerances: dict | None = None) -> None:
+    """Write ``result`` as the new baseline (deliberate: ``viotb regress --update``)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    data = {
+        "note": "viotb regress baseline; metrics are lower-is-better; limit = base + abs + rel * |base|",
+        "seed": result["seed"],
+        "reference_ms": result["reference_ms"],
+        "tolerances": tolerances if tolerances is not None else TOLERANCES,
+        "cases": result["cases"],
+    }
+    p.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+def regress(
+    baseline: Path | str = DEFAULT_BASELINE, update: bool = False, full: bool = False,
+    params: MsckfParams | None = None,
+) -> tuple[bool, list[dict], dict]:
+    """Run the suite and compare (or rewrite the baseline when ``update``).
+
+    Returns:
+        ``(passed, rows, result)``.
+    """
+    result = run_suite(full=full, params=params)
+    if update:
+        write_baseline(baseline, result)
+        return True, [], result
+    rows = compare(result, load_baseline(baseline))
+    return all(r["ok"] for r in rows), rows, result
