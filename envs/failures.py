@@ -214,6 +214,8 @@ class FailureSpec:
             prm = replace(prm, estimate_extrinsics=True, extrinsic_sigma_rad=0.05)
         elif n == "fail-gyro-saturation":
             cfg = replace(cfg, imu_preset="bmi088")
+        elif n == "fail-feature-poverty":
+            cfg = replace(cfg, landmark_count=1500)  # texture back: coast through the gap
         return cfg, prm
 
 

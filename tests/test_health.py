@@ -56,7 +56,8 @@ def test_initialization_timeout_and_gravity_norm():
     mon = HealthMonitor()
     rng = np.random.default_rng(1)
     for k in range(200):
-        mon.observe_imu(ImuSample(k / 200.0, np.zeros(3), np.array([0.0, 0.0, 10.3]) + rng.normal(0, 0.01, 3)))
+        acc = np.array([0.0, 0.0, 10.3]) + rng.normal(0, 0.01, 3)
+        mon.observe_imu(ImuSample(k / 200.0, np.zeros(3), acc))
     est = StateEstimate(1.0, np.eye(3), np.zeros(3), np.zeros(3), cov=np.eye(15) * 1e-4)
     mon.observe_frame(1.0, HealthStatus(1.0, True, 100), est)
     assert mon.report()[0].name == "initialization_failure" and "gravity norm" in mon.report()[0].evidence
