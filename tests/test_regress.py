@@ -1,0 +1,50 @@
+"""Tests of envs/regress.py: passes on its baseline, fails on a degraded filter or a tight baseline."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from viotb.envs.regress import DEFAULT_BASELINE, compare, load_baseline, run_suite, write_baseline
+from viotb.vio.msckf import MsckfParams
+
+
+@pytest.fixture(scope="module")
+def hover_result():
+    return run_suite(fly_case=False, only=("hover-sim",))
+
+
+def _only(baseline: dict, case: str) -> dict:
+    return {**baseline, "cases": {case: baseline["cases"][case]}}
+
+
+def test_passes_on_committed_baseline_and_is_deterministic(hover_result):
+    base = _only(load_baseline(DEFAULT_BASELINE), "hover-sim")
+    rows = compare(hover_result, base)
+    assert rows and all(r["ok"] for r in rows), rows
+    # Same seed, same metrics up to BLAS round-off across processes (measured 1.4e-9 relative).
+    for metric in ("ate_m", "final_err_m", "nees_pos"):
+        assert hover_result["cases"]["hover-sim"][metric] == pytest.approx(base["cases"]["hover-sim"][metric],
+                                                                           rel=1e-6)
+
+
+def test_fails_on_degraded_filter():
+    bad = run_suite(fly_case=False, only=("hover-sim",), params=MsckfParams(pixel_sigma_px=8.0, max_clones=4))
+    rows = compare(bad, _only(load_baseline(DEFAULT_BASELINE), "hover-sim"))
+    assert not all(r["ok"] for r in rows)
+
+
+def test_fails_on_perturbed_baseline_and_bad_files(hover_result, tmp_path):
+    path = tmp_path / "b.json"
+    write_baseline(path, hover_result)
+    assert all(r["ok"] for r in compare(hover_result, load_baseline(path)))
+    data = json.loads(path.read_text())
+    data["cases"]["hover-sim"]["ate_m"] *= 0.5
+    path.write_text(json.dumps(data))
+    rows = compare(hover_result, load_baseline(path))
+    assert [r["metric"] for r in rows if not r["ok"]] == ["ate_m"]
+    with pytest.raises(FileNotFoundError, match="not found"):
+        load_baseline(tmp_path / "missing.json")
+    path.write_text("{")
+    with pytest.raises(ValueError, match="invalid JSON"):
+        load_baseline(path)
