@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 from viotb.envs.camera_model import CameraModelParams
 from viotb.envs.imu_model import imu_preset
-from viotb.envs.trajectories import TRAJECTORY_FACTORIES, MotionParams, Trajectory
+from viotb.envs.trajectories import TRAJECTORY_FACTORIES, MotionParams, StillStart, Trajectory
 from viotb.models.constants import SCENE_XMLS, VEHICLE_XMLS
 
 SCENARIO_KINDS = ("record", "fly")
@@ -32,6 +32,8 @@ class Scenario:
         imu_preset: Name for :func:`viotb.envs.imu_model.imu_preset`.
         camera: Camera timing/noise parameters.
         trajectory: Factory ``duration_s -> Trajectory`` (None for scenarios without a scripted motion).
+        still_start_s: Rest at the first pose before the motion (s), inside the duration, so that a static
+            initializer can start as on real sequences; 0 disables it.
     """
 
     name: str
@@ -43,6 +45,7 @@ class Scenario:
     imu_preset: str = "adis16448"
     camera: CameraModelParams = field(default_factory=CameraModelParams)
     trajectory: Callable[[float], Trajectory] | None = None
+    still_start_s: float = 1.5
 
     def __post_init__(self) -> None:
         """Validate names against the models and presets."""
@@ -68,7 +71,11 @@ class Scenario:
         duration = self.default_seconds if seconds is None else float(seconds)
         if not duration > 0.0:
             raise ValueError(f"scenario {self.name!r}: seconds must be > 0, got {seconds}")
-        return self.trajectory(duration)
+        if self.still_start_s <= 0.0:
+            return self.trajectory(duration)
+        # The motion fills what the rest leaves (a scenario shorter than its rest is all rest).
+        motion = self.trajectory(max(duration - self.still_start_s, 1e-3))
+        return StillStart(motion, min(self.still_start_s, duration))
 
 
 _REGISTRY: dict[str, Scenario] = {}

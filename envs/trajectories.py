@@ -22,7 +22,7 @@ From ``R, R', R''``: ``Omega = R^T R'`` gives ``omega_B = vee(Omega)`` and
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from dataclasses import replace as dataclass_replace
 from typing import Protocol, runtime_checkable
 
@@ -351,6 +351,38 @@ class ScriptedTrajectory:
             *(np.array([getattr(s, name) for s in samples]) for name in TruthSample.__dataclass_fields__
               if name != "t_s"),
         )
+
+
+@dataclass(frozen=True)
+class StillStart:
+    """Hold ``inner``'s first pose for ``still_s`` seconds, then run ``inner`` shifted by ``still_s``.
+
+    Real sequences (EuRoC's among them) begin at rest, which is what a static initializer needs. Every
+    scripted motion starts at rest with vanishing derivatives (7th-order time warp), so the joint is exact.
+
+    Attributes:
+        inner: The motion.
+        still_s: Rest before it (s), >= 0.
+    """
+
+    inner: ScriptedTrajectory
+    still_s: float
+
+    @property
+    def duration_s(self) -> float:
+        """Rest plus motion (s)."""
+        return self.still_s + self.inner.duration_s
+
+    def sample(self, t_s: float) -> TruthSample:
+        """State at ``t_s`` (s)."""
+        inner = self.inner.sample(max(float(t_s) - self.still_s, 0.0))
+        return replace(inner, t_s=float(t_s))
+
+    def sample_many(self, t_s: np.ndarray) -> TruthSeries:
+        """States at times ``t_s`` (s), shape (N,)."""
+        t = np.asarray(t_s, dtype=float)
+        series = self.inner.sample_many(np.maximum(t - self.still_s, 0.0))
+        return replace(series, t_s=t.copy())
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -55,6 +55,10 @@ class MsckfParams:
 
     Attributes:
         max_clones: Clones in the sliding window (10-15).
+        clone_every_n_frames: Clone (and update) on every n-th frame only; the front end still tracks every
+            frame. Spacing the clones widens the window's baseline (keyframing, lesson ch. 8): a hovering
+            drone moves millimetres per frame, too little parallax to triangulate within 11 consecutive
+            frames.
         max_features_per_update: Most features used in one update (longest tracks first).
         min_track_length: Fewest clone observations for a feature to be used.
         pixel_sigma_px: Feature measurement noise (px).
@@ -82,6 +86,7 @@ class MsckfParams:
     """
 
     max_clones: int = 11
+    clone_every_n_frames: int = 1
     max_features_per_update: int = 50
     min_track_length: int = 3
     pixel_sigma_px: float = 1.0
@@ -222,6 +227,7 @@ class MsckfEstimator:
         self._pred_cache: tuple[int, float, ImuValues, np.ndarray, np.ndarray] | None = None
         self.last_stats = UpdateStats()
         self.zupt_count = 0
+        self._frames_since_clone = 0
 
     # ------------------------------------------------------------------ protocol
     def initialize(self, init: object) -> None:
@@ -345,7 +351,11 @@ class MsckfEstimator:
             conditions.append("zupt")
             self.zupt_count += 1
             stats = UpdateStats()
+        elif self._frames_since_clone + 1 < p.clone_every_n_frames:
+            self._frames_since_clone += 1
+            stats = UpdateStats()
         else:
+            self._frames_since_clone = 0
             self.propagator.propagate_and_clone(st, frame.t_s)
             self.database.add(frame.t_s, tracks.ids, tracks.xy_norm)
             stats = self._msckf_update(frame.t_s)

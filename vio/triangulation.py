@@ -43,8 +43,8 @@ class TriangulationParams:
     initial_damping: float = 1e-3
     min_depth_m: float = 0.1
     max_depth_m: float = 60.0
-    max_depth_baseline_ratio: float = 40.0
-    max_condition_number: float = 1e4
+    max_depth_baseline_ratio: float = 200.0
+    max_condition_number: float = 1e6
     max_reprojection_error_px: float = 3.0
 
 
