@@ -55,6 +55,8 @@ class MsckfParams:
 
     Attributes:
         max_clones: Clones in the sliding window (10-15).
+        excitation_accel_bias_sigma_m_s2: Above this horizontal accelerometer-bias sigma (m/s^2) the filter
+            asks for excitation (:meth:`MsckfEstimator.wants_excitation`).
         clone_every_n_frames: Clone (and update) on every n-th frame only; the front end still tracks every
             frame. Spacing the clones widens the window's baseline (keyframing, lesson ch. 8): a hovering
             drone moves millimetres per frame, too little parallax to triangulate within 11 consecutive
@@ -87,6 +89,7 @@ class MsckfParams:
 
     max_clones: int = 11
     clone_every_n_frames: int = 1
+    excitation_accel_bias_sigma_m_s2: float = 0.02
     max_features_per_update: int = 50
     min_track_length: int = 3
     pixel_sigma_px: float = 1.0
@@ -300,6 +303,25 @@ class MsckfEstimator:
     def health(self) -> HealthStatus:
         """Health after the latest camera frame."""
         return self._health
+
+    def last_tracks_px(self) -> np.ndarray:
+        """Distorted pixels of the features tracked in the latest frame, shape (M, 2) (for viewers)."""
+        tracks = getattr(self, "_prev_tracks", None)
+        return np.zeros((0, 2)) if tracks is None else tracks.uv_px
+
+    def wants_excitation(self) -> bool:
+        """True while the horizontal accelerometer bias is still poorly known.
+
+        After a static initialization the accelerometer bias along x and y is confounded with roll and
+        pitch until the platform rotates and accelerates (lesson ch. 6-8: "design the motion in"); a runner
+        answers with an excitation manoeuvre. Threshold: ``params.excitation_accel_bias_sigma_m_s2``.
+        """
+        st = self.state
+        if st is None:
+            return False
+        P = marginal_covariance(st, [st.block(IMU_BLOCK)])
+        sigma_ba_xy = np.sqrt(np.max(np.diag(P)[12:14]))
+        return bool(sigma_ba_xy > self.params.excitation_accel_bias_sigma_m_s2)
 
     # ------------------------------------------------------------------ internals
     def _try_initialize(self, tracks: Tracks) -> None:
