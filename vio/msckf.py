@@ -57,10 +57,12 @@ class MsckfParams:
         max_clones: Clones in the sliding window (10-15).
         excitation_accel_bias_sigma_m_s2: Above this horizontal accelerometer-bias sigma (m/s^2) the filter
             asks for excitation (:meth:`MsckfEstimator.wants_excitation`).
-        clone_every_n_frames: Clone (and update) on every n-th frame only; the front end still tracks every
-            frame. Spacing the clones widens the window's baseline (keyframing, lesson ch. 8): a hovering
-            drone moves millimetres per frame, too little parallax to triangulate within 11 consecutive
-            frames.
+        keyframe_min_parallax_px: Median feature motion (px) since the last clone that makes a frame a
+            clone before ``clone_every_n_frames`` is reached.
+        clone_every_n_frames: Clone (and update) at least on every n-th frame; the front end still tracks
+            every frame. Spacing the clones widens the window's baseline (keyframing, lesson ch. 8): a
+            hovering drone moves millimetres per frame, too little parallax to triangulate within 11
+            consecutive frames.
         max_features_per_update: Most features used in one update (longest tracks first).
         min_track_length: Fewest clone observations for a feature to be used.
         pixel_sigma_px: Feature measurement noise (px).
@@ -89,6 +91,7 @@ class MsckfParams:
 
     max_clones: int = 11
     clone_every_n_frames: int = 1
+    keyframe_min_parallax_px: float = 3.0
     excitation_accel_bias_sigma_m_s2: float = 0.02
     max_features_per_update: int = 50
     min_track_length: int = 3
@@ -231,6 +234,7 @@ class MsckfEstimator:
         self.last_stats = UpdateStats()
         self.zupt_count = 0
         self._frames_since_clone = 0
+        self._keyframe_tracks: Tracks | None = None
 
     # ------------------------------------------------------------------ protocol
     def initialize(self, init: object) -> None:
@@ -373,11 +377,12 @@ class MsckfEstimator:
             conditions.append("zupt")
             self.zupt_count += 1
             stats = UpdateStats()
-        elif self._frames_since_clone + 1 < p.clone_every_n_frames:
+        elif not self._is_keyframe(tracks):
             self._frames_since_clone += 1
             stats = UpdateStats()
         else:
             self._frames_since_clone = 0
+            self._keyframe_tracks = tracks
             self.propagator.propagate_and_clone(st, frame.t_s)
             self.database.add(frame.t_s, tracks.ids, tracks.xy_norm)
             stats = self._msckf_update(frame.t_s)
@@ -390,6 +395,23 @@ class MsckfEstimator:
         self._check_divergence(stats)
         self.last_stats = stats
         self._health = self._make_health(frame.t_s, tracks, stats, tuple(conditions))
+
+    def _is_keyframe(self, tracks: Tracks) -> bool:
+        """Parallax-based keyframe test (VINS-Mono's rule; lesson ch. 8 "keyframe selection").
+
+        A frame becomes a clone when the median pixel motion of the features shared with the last clone
+        reaches ``keyframe_min_parallax_px``, when fewer than half of them are still tracked, or after
+        ``clone_every_n_frames`` frames at the latest (1 = every frame is a clone).
+        """
+        p = self.params
+        if self._frames_since_clone + 1 >= p.clone_every_n_frames or self._keyframe_tracks is None:
+            return True
+        ref = self._keyframe_tracks
+        _, i_ref, i_now = np.intersect1d(ref.ids, tracks.ids, return_indices=True)
+        if len(i_now) < max(0.5 * len(ref.ids), 1):
+            return True
+        parallax = np.median(np.linalg.norm(tracks.uv_px[i_now] - ref.uv_px[i_ref], axis=1))
+        return bool(parallax >= p.keyframe_min_parallax_px)
 
     def _check_divergence(self, stats: UpdateStats) -> None:
         st = self.state
