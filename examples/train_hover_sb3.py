@@ -99,6 +99,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--episode-steps", type=int, default=250, help="steps per episode (0.02 s each)")
     parser.add_argument("--eval-episodes", type=int, default=3, help="evaluation episodes per estimator")
     parser.add_argument("--seed", type=int, default=0, help="training and evaluation seed")
+    parser.add_argument(
+        "--log-std-init",
+        type=float,
+        default=-1.0,
+        help="initial log std of the Gaussian policy (SB3 default 0 explores so wildly with setpoint "
+        "actions that most early episodes leave the arena)",
+    )
     parser.add_argument("--save", default=None, help="optional path to save the trained policy (.zip)")
     args = parser.parse_args(argv)
     if args.timesteps < 1 or args.episode_steps < 1 or args.eval_episodes < 1:
@@ -116,6 +123,7 @@ def main(argv: list[str] | None = None) -> dict:
         n_steps=n_steps,
         batch_size=min(64, n_steps),
         seed=args.seed,
+        policy_kwargs={"log_std_init": args.log_std_init},
         device="cpu",
         verbose=0,
     )
