@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-
 from viotb.envs.closed_loop import ClosedLoopSim, RigConfig
 from viotb.envs.fly import FLY_SCENARIOS, fly
 
