@@ -136,6 +136,9 @@ class UpdateStats:
         rows: Measurement rows after null-space projection (before compression).
         inconsistent: Features whose views admit no common point (triangulation reprojection error above
             its gate), a divergence symptom when they dominate.
+        nis_per_dof: Mean over the features that passed the gate of ``chi2 / dof`` (normalized innovation
+            squared per degree of freedom; ~1 when consistent), NaN when none passed.
+        nis_per_dof_all: The same mean over every triangulated candidate (rejected ones included).
     """
 
     candidates: int = 0
@@ -144,6 +147,8 @@ class UpdateStats:
     rejected: int = 0
     rows: int = 0
     inconsistent: int = 0
+    nis_per_dof: float = float("nan")
+    nis_per_dof_all: float = float("nan")
 
 
 def _init_fields(init: object) -> tuple[float, ImuValues, np.ndarray]:
@@ -360,7 +365,7 @@ class MsckfEstimator:
             t_s=t_s, initialized=True, tracked_features=len(tracks), updated_features=stats.used,
             chi2_rejections=stats.rejected, diverged=bool(self._diverged_reason),
             reason=self._diverged_reason,
-            conditions=tuple(conds),
+            conditions=tuple(conds), nis_per_dof=stats.nis_per_dof, nis_per_dof_all=stats.nis_per_dof_all,
         )
 
     def _declare_divergence(self, reason: str) -> None:
@@ -566,7 +571,9 @@ class MsckfEstimator:
         dof = 2 * mask.sum(axis=1) - 3
         passed = chi2 < p.chi2_multiplier * self.chi2(dof)
         n_pass = int(passed.sum())
-        stats = UpdateStats(n_cand, F, n_pass, int(F - n_pass), int(dof[passed].sum()), n_bad)
+        nis = chi2 / dof
+        stats = UpdateStats(n_cand, F, n_pass, int(F - n_pass), int(dof[passed].sum()), n_bad,
+                            float(np.mean(nis[passed])) if n_pass else float("nan"), float(np.mean(nis)))
         if n_pass == 0:
             return stats
         # 6. Stack, compress (QR) and update.

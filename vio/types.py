@@ -167,6 +167,9 @@ class HealthStatus:
         diverged: True once the estimator has detected its own divergence (it then stops updating).
         reason: Human-readable explanation when ``diverged`` (NaN, non-PSD covariance, runaway innovation).
         conditions: Named conditions raised by the health monitor (e.g. ``"feature_poverty"``).
+        nis_per_dof: Mean normalized innovation squared per degree of freedom of the features that passed
+            the gate in the latest update (about 1 for a consistent filter; NaN when there was no update).
+        nis_per_dof_all: The same over every triangulated candidate, rejected ones included (NaN if none).
     """
 
     t_s: float
@@ -177,6 +180,8 @@ class HealthStatus:
     diverged: bool = False
     reason: str = ""
     conditions: tuple[str, ...] = ()
+    nis_per_dof: float = float("nan")
+    nis_per_dof_all: float = float("nan")
 
 
 class EstimatorDiverged(RuntimeError):
