@@ -63,6 +63,8 @@ class RigConfig:
         wind: Wind gusts.
         sim_pixel_sigma_px: Pixel noise of the ``sim`` front end (px).
         render_images: Render the onboard camera even in ``sim`` mode (for image observations / recordings).
+        imu_fault_at_s: From this time on (s) the IMU outputs NaN on every axis: a failed sensor, used to test
+            how an estimator and the runner behave when the estimate becomes unusable; None = healthy.
     """
 
     scene: str = "textured_room"
@@ -75,6 +77,7 @@ class RigConfig:
     wind: WindParams = field(default_factory=WindParams)
     sim_pixel_sigma_px: float = 0.5
     render_images: bool = False
+    imu_fault_at_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -157,6 +160,7 @@ class ClosedLoopSim:
         self.last_imu: ImuSample | None = None
         self.frames_delivered = 0
         self.frames_dropped = 0
+        self.estimator_failure = ""
         self._place_on_ground()
 
     @staticmethod
@@ -235,9 +239,22 @@ class ClosedLoopSim:
             _, frame = self._pending.popleft()
             if self.config.estimator == "ground-truth":
                 self._feed_truth()
-            self.estimator.feed_camera(frame)
+            self._feed(self.estimator.feed_camera, frame)
             self.last_frame = frame
             self.frames_delivered += 1
+
+    def _feed(self, feed, item) -> None:
+        """Feed the estimator; an estimator that raises is recorded as failed and fed no more.
+
+        The process must survive a broken estimator (bad samples it rejects, numerical failure): the runner
+        reads :attr:`estimator_failure` and stops the flight, reporting it as a divergence.
+        """
+        if self.estimator_failure:
+            return
+        try:
+            feed(item)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            self.estimator_failure = f"{type(exc).__name__}: {exc}"
 
     def _feed_truth(self) -> None:
         tr = self.truth()
@@ -271,10 +288,14 @@ class ClosedLoopSim:
                 sample = self.imu_model.measure(
                     self.t_s, self.sim.angular_velocity_B(), self.sim.specific_force_B()
                 )
+                fault = self.config.imu_fault_at_s
+                if fault is not None and self.t_s >= fault:
+                    nan3 = np.full(3, np.nan)
+                    sample = ImuSample(sample.t_s, nan3, nan3, sample.saturated)
                 self.last_imu = sample
                 if self.config.estimator == "ground-truth":
                     self._feed_truth()
-                self.estimator.feed_imu(sample)
+                self._feed(self.estimator.feed_imu, sample)
             if self._step_count % self._cam_every == 0:
                 self._capture(self.t_s)
             self._deliver_frames()

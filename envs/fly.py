@@ -67,7 +67,7 @@ def _fly_scenarios() -> dict[str, FlyScenario]:
     """The closed-loop scenario registry."""
     blackout = CameraModelParams(blackout_intervals_s=((12.0, 14.0),))
     items = [
-        FlyScenario("fly-hover", "take off and hold a point in the textured room", default_seconds=20.0),
+        FlyScenario("fly-hover", "take off and hold a point in the textured room", default_seconds=30.0),
         FlyScenario(
             "fly-waypoints", "fly a square of waypoints at 1.5 m", mission="waypoints", default_seconds=30.0
         ),
@@ -77,6 +77,12 @@ def _fly_scenarios() -> dict[str, FlyScenario]:
             "hover with a 2 s camera blackout at t = 12 s (coast on the IMU)",
             rig=RigConfig(camera=blackout),
             default_seconds=20.0,
+        ),
+        FlyScenario(
+            "fly-imu-failure",
+            "hover until the IMU fails at t = 12 s: the estimator must report it and the runner stop safely",
+            rig=RigConfig(imu_fault_at_s=12.0),
+            default_seconds=16.0,
         ),
         FlyScenario(
             "fly-blank-wall",
@@ -261,8 +267,9 @@ def fly(
     while loop.t_s < total_s - 1e-9:
         est = loop.estimate()
         health = loop.health()
-        if health.diverged:
-            diverged, reason = True, health.reason
+        if health.diverged or loop.estimator_failure:
+            # Stop safely: motors off, flight ended, the reason reported (no exception escapes).
+            diverged, reason = True, health.reason or f"estimator failed: {loop.estimator_failure}"
             break
         if phase == "ground" and est is not None:
             init_time = loop.t_s
@@ -312,6 +319,7 @@ def fly(
     wall = time.perf_counter() - wall0
     loop.close()
     metrics = _metrics(log, mission_t0, init_time)
+    metrics.update(_blackout_metrics(log, rig.camera.blackout_intervals_s))
     metrics.update(
         {
             "scenario": scenario,
@@ -357,6 +365,33 @@ def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, 
         log.p_set_W.append(nan3)
     else:
         log.p_set_W.append(gauge[0] @ setpoint.p_W + gauge[1])
+
+
+def _blackout_metrics(log: FlightLog, blackouts: tuple) -> dict:
+    """Excursion during each camera blackout (+1 s) and whether tracking came back after it.
+
+    Returns ``{}`` without blackouts, else ``blackout_excursion_m`` (largest truth-to-setpoint distance
+    from the start of a blackout to 1 s after its end), ``blackout_est_err_m`` (largest estimate error in
+    that span) and ``blackout_recovered`` (every blackout is followed, within 1 s, by a frame with >= 20
+    tracked features).
+    """
+    if not blackouts:
+        return {}
+    t = np.asarray(log.t_s)
+    err_set = np.linalg.norm(np.asarray(log.p_true_W) - np.asarray(log.p_set_W), axis=1)
+    err_est = np.linalg.norm(np.asarray(log.p_est_W) - np.asarray(log.p_true_W), axis=1)
+    ft, nf = np.asarray(log.frame_t_s), np.asarray(log.frame_features)
+    excursion, est_err, recovered = 0.0, 0.0, True
+    for a, b in blackouts:
+        m = (t >= a) & (t <= b + 1.0)
+        if not np.any(m):
+            recovered = False
+            continue
+        excursion = max(excursion, float(np.nanmax(err_set[m])))
+        est_err = max(est_err, float(np.nanmax(err_est[m])))
+        after = (ft > b) & (ft <= b + 1.0)
+        recovered = recovered and bool(np.any(nf[after] >= 20))
+    return {"blackout_excursion_m": excursion, "blackout_est_err_m": est_err, "blackout_recovered": recovered}
 
 
 def _metrics(log: FlightLog, mission_t0: float | None, init_time: float | None) -> dict:

@@ -18,16 +18,17 @@ def test_ground_truth_hover_holds_setpoint():
 
 
 def test_msckf_sim_features_holds_within_10cm():
-    metrics, _ = fly("fly-hover", "msckf", seconds=12.0, seed=1, frontend="sim")
+    metrics, _ = fly("fly-hover", "msckf", seconds=15.0, seed=1, frontend="sim")
     assert not metrics["crashed"] and not metrics["diverged"]
     assert metrics["init_time_s"] is not None
-    assert metrics["hover_rms_m"] < 0.10
+    assert metrics["hover_rms_m"] is not None and metrics["hover_rms_m"] < 0.10
     assert metrics["max_err_m"] < 0.20
 
 
 @pytest.fixture(scope="module")
 def klt_flight():
-    return fly("fly-hover", "msckf", seconds=8.0, seed=2, frontend="klt")
+    # 15 s: ground init (1.5 s), takeoff (3 s), the excitation the filter asks for (6 s), then hover.
+    return fly("fly-hover", "msckf", seconds=15.0, seed=2, frontend="klt")
 
 
 def test_msckf_rendered_images_short_flight_flies(klt_flight):
@@ -37,14 +38,10 @@ def test_msckf_rendered_images_short_flight_flies(klt_flight):
     assert metrics["realtime_factor"] > 0.0
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="known gap: hovering on rendered 320x240 images the MSCKF drifts (measured 8-16 cm RMS over "
-    "8 s, seeds 1-2) for lack of parallax in its 0.5 s window; the 10 cm bound holds with simulated features",
-)
 def test_msckf_rendered_images_hover_within_10cm(klt_flight):
     metrics, _ = klt_flight
-    assert metrics["hover_rms_m"] < 0.10
+    assert metrics["excitation_flown"]
+    assert metrics["hover_rms_m"] is not None and metrics["hover_rms_m"] < 0.10
 
 
 @pytest.mark.slow
@@ -76,3 +73,20 @@ def test_every_scenario_is_registered_with_a_description():
     assert len(FLY_SCENARIOS) >= 8
     for name, sc in FLY_SCENARIOS.items():
         assert name.startswith("fly-") and sc.description
+
+
+def test_camera_blackout_coasts_on_imu_and_recovers():
+    metrics, _ = fly("fly-blackout", "msckf", seconds=15.5, seed=0, frontend="klt")
+    assert not metrics["crashed"] and not metrics["diverged"]
+    assert metrics["frames_dropped"] == 40  # 2 s at 20 Hz
+    # Issue target: excursion < 10 cm through the 2 s blackout, and tracking comes back within 1 s.
+    assert metrics["blackout_excursion_m"] < 0.10
+    assert metrics["blackout_recovered"]
+
+
+def test_failed_imu_is_reported_and_the_flight_stops_safely():
+    metrics, log = fly("fly-imu-failure", "msckf", seconds=14.0, seed=0, frontend="sim")
+    assert metrics["diverged"] and not metrics["crashed"]
+    assert "not finite" in metrics["reason"]
+    # The flight ended at the fault (12 s), not at the requested 14 s, with the last command logged.
+    assert 12.0 <= metrics["seconds"] < 12.1
