@@ -261,6 +261,10 @@ class MsckfEstimator:
         )
         self._version += 1
         self._health = HealthStatus(t_s=t_s, initialized=True)
+        # Only a static initialization proves the platform is at rest; after any other (dynamic, or from an
+        # external source such as a perturbed truth in the Gymnasium envs) the ZUPT stays off when
+        # ``zupt_only_at_beginning``.
+        self._has_moved = getattr(init, "method", "static") != "static"
 
     def feed_imu(self, sample: ImuSample) -> None:
         """Buffer one IMU reading (ValueError naming value/time on NaN/inf or non-increasing time)."""
