@@ -61,6 +61,30 @@ def test_static_init_on_synthetic_still_imu():
     assert res.cov_diag.shape == (15,) and np.all(res.cov_diag > 0.0)
 
 
+def test_static_init_recovers_the_accel_bias_along_gravity_only():
+    rng = np.random.default_rng(1)
+    noise = ImuNoise()
+    R_WB_true = Rotation.from_euler("ZYX", [0.3, 0.05, 0.08]).as_matrix()
+    ba_true = np.array([0.04, -0.03, 0.06])
+    up_B = R_WB_true.T @ [0, 0, 1]
+    dt = 1.0 / IMU_RATE_HZ
+    sa = noise.accel_noise_density_m_s2_sqrthz / np.sqrt(dt)
+    init = InertialInitializer(CALIB, noise, InitParams(window_s=1.0))
+    for k in range(400):
+        f_B = R_WB_true.T @ (-gravity_W()) + ba_true + sa * rng.normal(size=3)
+        init.feed_imu(ImuSample(k * dt, 1e-4 * rng.normal(size=3), f_B))
+    res = init.try_initialize()
+    assert res is not None and res.method == "static"
+    # The component along gravity: |f| - g = up . ba to first order (the horizontal part tilts "up" instead).
+    expected = float(np.linalg.norm(R_WB_true.T @ (-gravity_W()) + ba_true)) - GRAVITY_M_S2
+    assert float(res.accel_bias_m_s2 @ up_B) == pytest.approx(float(up_B @ ba_true), abs=2e-3)
+    mean_sigma = 4 * sa / np.sqrt(200)
+    assert float(np.linalg.norm(res.accel_bias_m_s2)) == pytest.approx(abs(expected), abs=mean_sigma)
+    # Nothing is claimed across gravity.
+    horizontal = res.accel_bias_m_s2 - (res.accel_bias_m_s2 @ res.R_WB.T[:, 2]) * res.R_WB.T[:, 2]
+    assert np.linalg.norm(horizontal) < 1e-12
+
+
 def _load_euroc_window(t0: float, t1: float):
     imu = np.loadtxt(EUROC / "imu0" / "data.csv", delimiter=",", comments="#")
     gt = np.loadtxt(EUROC / "state_groundtruth_estimate0" / "data.csv", delimiter=",", comments="#")

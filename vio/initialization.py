@@ -270,9 +270,13 @@ class InertialInitializer:
 
     def _static(self) -> InitResult:
         # 1. Mean specific force = up direction in B (open_vins StaticInitializer); mean gyro = bias.
+        # 2. At rest the accelerometer bias along "up" is observable as |mean specific force| - g (the
+        #    horizontal part is not: it is confounded with roll and pitch until the platform rotates).
         window = self._window_imu()
         acc_mean = np.mean([s.accel_B_m_s2 for s in window], axis=0)
         gyro_mean = np.mean([s.gyro_B_rad_s for s in window], axis=0)
+        up_B = acc_mean / np.linalg.norm(acc_mean)
+        accel_bias = (float(np.linalg.norm(acc_mean)) - GRAVITY_M_S2) * up_B
         self.last_failure = ""
         return InitResult(
             t_s=window[-1].t_s,
@@ -280,7 +284,7 @@ class InertialInitializer:
             p_WB=np.zeros(3),
             v_WB=np.zeros(3),
             gyro_bias_rad_s=gyro_mean,
-            accel_bias_m_s2=np.zeros(3),
+            accel_bias_m_s2=accel_bias,
             method="static",
             cov_diag=self._cov_diag("static", len(window)),
             gravity_norm_m_s2=float(np.linalg.norm(acc_mean)),
