@@ -87,6 +87,7 @@ class Stream:
     calib_given: CameraCalibration
     noise: object
     time_offset_s: float
+    pixel_sigma_px: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -152,7 +153,7 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
     given = replace(calib, R_BC=calib.R_BC @ R_err, time_offset_s=cfg.assumed_time_offset_s)
     gt = TrajectoryArrays(t_imu, truth.p_WB, np.array([rotmat_to_quat_wxyz(R) for R in truth.R_WB]),
                           truth.v_WB)
-    return Stream(imu, frames, gt, calib, given, params.noise, cfg.time_offset_s)
+    return Stream(imu, frames, gt, calib, given, params.noise, cfg.time_offset_s, cfg.pixel_sigma_px)
 
 
 # ----------------------------------------------------------------------------------------------- specs
@@ -185,9 +186,9 @@ class FailureSpec:
         if n == "fail-no-excitation":
             return StreamConfig(motion="line", seconds=8.0, speed_scale=1.0 + 0.5 * s)
         if n == "fail-time-offset":
-            return StreamConfig(motion="circle", seconds=12.0, time_offset_s=0.01 * s, speed_scale=1.0 + s)
+            return StreamConfig(motion="figure8", seconds=12.0, time_offset_s=0.01 * s, speed_scale=1.0 + s)
         if n == "fail-extrinsic":
-            return StreamConfig(motion="circle", seconds=12.0, extrinsic_error_rad=np.deg2rad(2.0) * s,
+            return StreamConfig(motion="figure8", seconds=12.0, extrinsic_error_rad=np.deg2rad(2.0) * s,
                                 speed_scale=1.0 + s)
         if n == "fail-feature-poverty":
             return StreamConfig(motion="hover", landmark_count=max(int(1500 * (1.0 - 0.98 * min(s, 1.0))), 8),
@@ -202,7 +203,7 @@ class FailureSpec:
     def fixed(self, severity: float = 1.0) -> tuple[StreamConfig, MsckfParams]:
         """The run with the catalog's fix applied, and the MSCKF settings of the fix."""
         cfg = self.config(severity)
-        prm = MsckfParams(frontend="sim")
+        prm = MsckfParams(frontend="sim", pixel_sigma_px=cfg.pixel_sigma_px)
         n = self.name
         if n == "fail-bad-init":
             cfg = replace(cfg, extra_gyro_bias_rad_s=0.0, accel_scale_error=0.0)
@@ -228,11 +229,11 @@ FAILURES: dict[str, FailureSpec] = {
         FailureSpec("fail-no-excitation", "insufficient_excitation",
                     "constant-velocity line: scale weakly observable",
                     "excitation manoeuvre (hover Lissajous)"),
-        FailureSpec("fail-time-offset", "time_offset_suspected",
-                    "10 ms camera-IMU clock offset on a fast circle: error grows with speed",
+        FailureSpec("fail-time-offset", "time_sync_or_extrinsic_suspected",
+                    "10 ms camera-IMU clock offset on a fast figure-8: error grows with speed",
                     "online time-offset calibration (MsckfParams.estimate_time_offset)"),
-        FailureSpec("fail-extrinsic", "extrinsic_error_suspected",
-                    "2 deg camera-IMU rotation error on a fast circle", "online extrinsic calibration"),
+        FailureSpec("fail-extrinsic", "time_sync_or_extrinsic_suspected",
+                    "2 deg camera-IMU rotation error on a fast figure-8", "online extrinsic calibration"),
         FailureSpec("fail-feature-poverty", "feature_poverty",
                     "30 landmarks and a 2 s blackout (blank wall / dark room)",
                     "coast on the IMU (propagate only)"),
@@ -331,7 +332,7 @@ def run_stream(
     ``metrics`` holds ``ate_m``, ``final_err_m``, ``scale_error_pct`` (sim(3) fit on the positions),
     ``init_time_s``, ``diverged``, ``time_offset_est_s``.
     """
-    prm = params if params is not None else MsckfParams(frontend="sim")
+    prm = params if params is not None else MsckfParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
     est = MsckfEstimator(stream.calib_given, stream.noise, replace(prm, frontend="sim"))
     run = monitor_run(est, stream.imu, stream.frames, stream.time_offset_s, HealthMonitor(health))
     ok = [i for i, e in enumerate(run.estimates) if e is not None and np.all(np.isfinite(e.p_WB))]

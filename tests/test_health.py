@@ -63,15 +63,22 @@ def test_initialization_timeout_and_gravity_norm():
     assert mon.report()[0].name == "initialization_failure" and "gravity norm" in mon.report()[0].evidence
 
 
-def test_speed_correlated_rejections_name_time_offset():
+def _sync_frames(mon: HealthMonitor, nis: float, speed_m_s: float, n: int = 40, n_features: int = 30):
+    for k in range(n):
+        est = StateEstimate(k * 0.05, np.eye(3), np.zeros(3), np.array([speed_m_s, 0.0, 0.0]),
+                            omega_B_rad_s=np.array([0.0, 0.0, 0.1]), cov=np.eye(15) * 1e-4)
+        h = HealthStatus(k * 0.05, True, 60, updated_features=n_features, nis_per_dof_all=nis)
+        mon.observe_frame(k * 0.05, h, est)
+
+
+def test_high_nis_while_moving_names_time_sync_or_extrinsic():
     mon = HealthMonitor()
-    for k in range(60):
-        v = 0.5 + 2.0 * (k % 10) / 10.0
-        rej = int(round(20 * v / 3.0))
-        est = StateEstimate(k * 0.05, np.eye(3), np.zeros(3), np.array([v, 0.0, 0.0]),
-                            omega_B_rad_s=np.array([0.0, 0.0, 0.3]), cov=np.eye(15) * 1e-4)
-        mon.observe_frame(k * 0.05, HealthStatus(k * 0.05, True, 60, updated_features=40 - rej,
-                                                 chi2_rejections=rej), est)
-    names = [c.name for c in mon.report()]
-    assert names == ["time_offset_suspected"]
-    assert abs(mon.first_time("time_offset_suspected") - 39 * 0.05) < 1e-9  # the window fills at frame 40
+    _sync_frames(mon, nis=1.5, speed_m_s=2.0)
+    (c,) = mon.report()
+    assert c.name == "time_sync_or_extrinsic_suspected" and "NIS per dof 1.50" in c.evidence
+    assert abs(c.t_s_first - 29 * 0.05) < 1e-9  # the 30-update window fills at frame 30
+    # Consistent filter (NIS ~ 1), at rest with a high NIS, too few features, or no NIS: nothing.
+    for nis, speed, nf in ((1.0, 2.0, 30), (1.5, 0.0, 30), (1.5, 2.0, 3), (float("nan"), 2.0, 30)):
+        quiet = HealthMonitor()
+        _sync_frames(quiet, nis=nis, speed_m_s=speed, n_features=nf)
+        assert quiet.report() == [], (nis, speed, nf)

@@ -9,11 +9,17 @@ named conditions (lesson 000, "VIO fails in characteristic, recognizable ways"):
    observable through acceleration, so it may drift ("drifts at constant velocity -> no excitation").
 2. ``feature_poverty`` -- fewer than ``min_tracked_features`` tracked for ``poverty_frames`` frames in a row.
 3. ``imu_saturation`` -- samples flagged ``saturated`` by the sensor (count and first time in the evidence).
-4. ``time_offset_suspected`` / ``extrinsic_error_suspected`` -- the chi-square rejection rate of the
-   features is high *and* correlated with speed (Pearson correlation over a window of frames): "worsens
-   with speed -> time-sync". A rejection rate that follows the angular speed but not the linear speed is
-   attributed to the extrinsic rotation; one that follows either with a strong linear-speed component to
-   the time offset (a time offset ``dt`` moves the features by ``~ f (|omega| + |v|/Z) dt``).
+4. ``time_sync_or_extrinsic_suspected`` -- while the platform moves, the mean normalized innovation
+   squared per degree of freedom (``HealthStatus.nis_per_dof_all``, every triangulated feature of an
+   update, rejected ones included) over a window of updates stays above ``max_nis_per_dof`` times its
+   consistent value 1 ("worsens with speed -> time-sync / extrinsics"). A camera-IMU time offset ``dt``
+   moves the features by ``~ f (|omega| + |v| / Z) dt`` and a rotation error of the extrinsics rotates
+   every ray; both vanish at rest, hence the motion gate. The two causes are *not* told apart: measured on
+   the figure-8 streams of :mod:`viotb.envs.failures`, the Pearson correlation over the window between the
+   NIS and the angular or linear speed is near zero or negative for both (the filter absorbs the part of
+   the error that is constant over its window -- a time offset on uniform motion is a rigid shift of the
+   trajectory -- and what is left follows the *changes* of the motion), so the correlations are only
+   reported in the evidence, and the condition is named for both causes.
 5. ``initialization_failure`` -- no state after ``init_timeout_s`` of IMU data, or the first estimate's
    specific force at rest disagrees with 9.81 m/s^2 (gravity norm check), or the first gyro bias estimate
    is far beyond the prior.
@@ -45,8 +51,7 @@ CONDITION_NAMES = (
     "insufficient_excitation",
     "feature_poverty",
     "imu_saturation",
-    "time_offset_suspected",
-    "extrinsic_error_suspected",
+    "time_sync_or_extrinsic_suspected",
     "initialization_failure",
     "divergence",
 )
@@ -68,12 +73,13 @@ class HealthParams:
         min_tracked_features: Tracked-feature count below which a frame counts as poor.
         poverty_frames: Consecutive poor frames that raise ``feature_poverty``.
         min_saturated_samples: Saturated IMU samples that raise ``imu_saturation``.
-        speed_window_frames: Frames in the speed/rejection correlation window.
-        min_reject_rate: Mean chi-square rejection rate (rejected / (rejected + used)) over the window that
-            makes a sync/extrinsic error suspect.
-        min_speed_correlation: Pearson correlation between the rejection rate and the speed above which the
-            error is said to grow with speed.
-        sync_min_features: Frames with fewer gated features (used + rejected) are ignored.
+        speed_window_frames: Updates (frames with a finite ``nis_per_dof_all``) in the NIS window.
+        max_nis_per_dof: Mean NIS per dof over the window above which a time-sync / extrinsic error is
+            suspected (1 for a consistent filter; measured window means 0.92-1.03 on nominal hover, circle
+            and figure-8 streams, 1.2-1.6 with a 2 deg extrinsic error or a 10 ms offset on a figure-8).
+        min_sync_speed_m_s: The window's mean linear speed (m/s) must exceed this...
+        min_sync_rate_rad_s: ...or its mean angular speed (rad/s) this (the errors vanish at rest).
+        sync_min_features: Updates with fewer gated features (used + rejected) are ignored.
         init_timeout_s: Seconds of IMU data without an estimate that raise ``initialization_failure``.
         gravity_norm_tol_m_s2: Largest allowed difference (m/s^2) between the mean accelerometer norm in the
             first still second and 9.81 when the estimator initializes (a miscalibrated accelerometer or a
@@ -89,9 +95,10 @@ class HealthParams:
     min_tracked_features: int = 20
     poverty_frames: int = 5
     min_saturated_samples: int = 1
-    speed_window_frames: int = 40
-    min_reject_rate: float = 0.2
-    min_speed_correlation: float = 0.4
+    speed_window_frames: int = 30
+    max_nis_per_dof: float = 1.2
+    min_sync_speed_m_s: float = 0.3
+    min_sync_rate_rad_s: float = 0.3
     sync_min_features: int = 5
     init_timeout_s: float = 5.0
     gravity_norm_tol_m_s2: float = 0.3
@@ -280,30 +287,26 @@ class HealthMonitor:
     def _check_sync(self, t_s: float, health: HealthStatus, est: StateEstimate) -> None:
         p = self.params
         gated = health.updated_features + health.chi2_rejections
-        if gated < p.sync_min_features:
+        nis = float(getattr(health, "nis_per_dof_all", float("nan")))
+        if gated < p.sync_min_features or not np.isfinite(nis):
             return
-        rate = health.chi2_rejections / gated
         w = float(np.linalg.norm(est.omega_B_rad_s))
         v = float(np.linalg.norm(est.v_WB))
-        self._sync.append((rate, w, v))
+        self._sync.append((nis, w, v))
         if len(self._sync) < p.speed_window_frames:
             return
         arr = np.array(self._sync)
-        mean_rate = float(np.mean(arr[:, 0]))
-        if mean_rate < p.min_reject_rate:
+        mean_nis = float(np.mean(arr[:, 0]))
+        mean_w, mean_v = float(np.mean(arr[:, 1])), float(np.mean(arr[:, 2]))
+        moving = mean_v > p.min_sync_speed_m_s or mean_w > p.min_sync_rate_rad_s
+        if mean_nis <= p.max_nis_per_dof or not moving:
             return
-        corr_w = _pearson(arr[:, 0], arr[:, 1])
-        corr_v = _pearson(arr[:, 0], arr[:, 2])
-        if max(corr_w, corr_v) < p.min_speed_correlation:
-            return
-        ev = (
-            f"chi2 rejection rate {mean_rate:.2f} over {len(arr)} frames, correlation with angular speed "
-            f"{corr_w:.2f}, with linear speed {corr_v:.2f}"
+        self._raise(
+            "time_sync_or_extrinsic_suspected", t_s,
+            f"mean NIS per dof {mean_nis:.2f} (> {p.max_nis_per_dof}) over {len(arr)} updates while moving "
+            f"(mean {mean_v:.2f} m/s, {mean_w:.2f} rad/s); correlation with angular speed "
+            f"{_pearson(arr[:, 0], arr[:, 1]):.2f}, with linear speed {_pearson(arr[:, 0], arr[:, 2]):.2f}",
         )
-        if corr_v >= p.min_speed_correlation:
-            self._raise("time_offset_suspected", t_s, ev)
-        else:
-            self._raise("extrinsic_error_suspected", t_s, ev)
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
