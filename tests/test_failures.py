@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from viotb.envs.failures import FAILURES, StreamConfig, failure_report, run_stream, synthesize_stream
 from viotb.envs.fly import FLY_SCENARIOS
 from viotb.envs.scenarios import get_scenario
+from viotb.vio.metrics import scale_error_pct
 from viotb.vio.msckf import MsckfParams
 
 
@@ -45,13 +47,51 @@ def test_no_false_alarm_on_nominal_hover_monte_carlo(seed):
     assert r.run.monitor.report() == []
 
 
-@pytest.mark.xfail(reason="measured: no time_offset_suspected on fail-time-offset (10 ms, fast circle): "
-                   "the MSCKF's chi2 rejection rate stays below 0.2 (ATE 0.053 m), so the speed correlation "
-                   "test never fires", strict=False)
-def test_time_offset_is_named():
-    spec = FAILURES["fail-time-offset"]
-    r = run_stream(synthesize_stream(spec.config(1.0), seed=0))
-    assert r.run.monitor.first_time("time_offset_suspected") is not None
+# Streams of 8 s of motion (after the 1.5 s still start) keep the default suite short.
+SYNC_SECONDS = 8.0
+
+
+@pytest.mark.parametrize(("name", "latest_s"), [("fail-time-offset", 5.0), ("fail-extrinsic", 6.5)])
+def test_time_sync_or_extrinsic_is_named(name, latest_s):
+    """Measured (seed 0): named at 3.65 s (10 ms offset) and 5.05 s (2 deg); motion starts at 1.5 s."""
+    spec = FAILURES[name]
+    r = run_stream(synthesize_stream(replace(spec.config(1.0), seconds=SYNC_SECONDS), seed=0))
+    t = r.run.monitor.first_time("time_sync_or_extrinsic_suspected")
+    assert t is not None and t <= latest_s, r.run.monitor.report()
+
+
+def _nominal_figure8() -> StreamConfig:
+    """The failing figure-8 (same speed) without the offset or the extrinsic error."""
+    return replace(FAILURES["fail-time-offset"].config(1.0), seconds=SYNC_SECONDS, time_offset_s=0.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_no_false_alarm_on_nominal_circle(seed):
+    r = run_stream(synthesize_stream(StreamConfig(motion="circle", seconds=6.0, landmark_count=600), seed))
+    assert r.run.monitor.report() == []
+
+
+def test_no_false_alarm_on_nominal_figure8():
+    r = run_stream(synthesize_stream(_nominal_figure8(), 0))
+    assert r.run.monitor.report() == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(20))
+def test_no_false_alarm_on_nominal_circle_and_figure8_monte_carlo(seed):
+    for cfg in (StreamConfig(motion="circle", seconds=10.0, landmark_count=600), _nominal_figure8()):
+        r = run_stream(synthesize_stream(cfg, seed))
+        assert r.run.monitor.report() == [], (cfg.motion, seed)
+
+
+@pytest.mark.slow
+def test_time_offset_error_grows_with_speed():
+    """10 ms offset on the figure-8 at 3 speeds. Measured ATE 0.034 / 0.069 / 0.156 m."""
+    ate = []
+    for speed in (0.5, 1.0, 2.0):
+        cfg = StreamConfig(motion="figure8", seconds=SYNC_SECONDS, speed_scale=speed, time_offset_s=0.01)
+        ate.append(run_stream(synthesize_stream(cfg, 0)).metrics["ate_m"])
+    assert ate[0] < ate[1] < ate[2], ate
 
 
 def test_time_offset_calibration_converges_within_1ms():
@@ -68,10 +108,38 @@ def test_failure_report_writes_plot(tmp_path):
     assert rep["fixed"]["ate_m"] < rep["failing"]["ate_m"]
 
 
+def _half_scale_errors_pct(r) -> tuple[float, float]:
+    """|scale error| (%) of a sim(3) fit on the first and on the second half of the estimated positions."""
+    ests = [e for e in r.run.estimates if e is not None]
+    t = np.array([e.t_s for e in ests])
+    p = np.array([e.p_WB for e in ests])
+    gt = r.stream.truth
+    g = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
+    n = len(t) // 2
+    return abs(scale_error_pct(p[:n], g[:n])), abs(scale_error_pct(p[n:], g[n:]))
+
+
 def test_no_excitation_scale_worse_than_excited():
+    """Measured (seed 0): line 0.13 % -> 0.97 %; hover 14.3 % -> 3.1 % (a 10 cm hover fits scale poorly)."""
     spec = FAILURES["fail-no-excitation"]
     bad = run_stream(synthesize_stream(replace(spec.config(1.0), landmark_count=600), 0))
     cfg_fix, prm = spec.fixed(1.0)
     good = run_stream(synthesize_stream(replace(cfg_fix, landmark_count=600), 0), prm)
     assert bad.run.monitor.first_time("insufficient_excitation") is not None
     assert good.run.monitor.first_time("insufficient_excitation") is None
+    bad_first, bad_second = _half_scale_errors_pct(bad)
+    good_first, good_second = _half_scale_errors_pct(good)
+    assert bad_second > bad_first, (bad_first, bad_second)  # constant velocity: scale error grows
+    assert good_second <= good_first, (good_first, good_second)  # excited: it does not
+
+
+def test_online_extrinsic_calibration_fixes_the_extrinsic_run():
+    """Measured (seed 0, 8 s): ATE 0.106 m with the 2 deg error, 0.012 m with online calibration."""
+    spec = FAILURES["fail-extrinsic"]
+    cfg = replace(spec.config(1.0), seconds=SYNC_SECONDS)
+    stream = synthesize_stream(cfg, 0)
+    bad = run_stream(stream)
+    _, prm = spec.fixed(1.0)
+    good = run_stream(stream, prm)
+    assert good.metrics["ate_m"] < 0.5 * bad.metrics["ate_m"], (bad.metrics, good.metrics)
+    assert good.run.monitor.report() == []

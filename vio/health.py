@@ -96,7 +96,7 @@ class HealthParams:
     poverty_frames: int = 5
     min_saturated_samples: int = 1
     speed_window_frames: int = 30
-    max_nis_per_dof: float = 1.2
+    max_nis_per_dof: float = 1.15
     min_sync_speed_m_s: float = 0.3
     min_sync_rate_rad_s: float = 0.3
     sync_min_features: int = 5
