@@ -241,7 +241,7 @@ FAILURES: dict[str, FailureSpec] = {
                     "aggressive manoeuvre past a +-125 deg/s gyro",
                     "an IMU rated for the motion (+-2000 deg/s)"),
         FailureSpec("fail-long-loop", "",
-                    "long loop back to the start: steady odometry drift",
+                    "long loop back to the start: odometry drift (loop closure is out of scope)",
                     "none in odometry (needs loop closure)"),
     )
 }

@@ -84,14 +84,18 @@ def test_no_false_alarm_on_nominal_circle_and_figure8_monte_carlo(seed):
         assert r.run.monitor.report() == [], (cfg.motion, seed)
 
 
-@pytest.mark.slow
 def test_time_offset_error_grows_with_speed():
-    """10 ms offset on the figure-8 at 3 speeds. Measured ATE 0.034 / 0.069 / 0.156 m."""
+    """10 ms offset on the figure-8 at speed scales 0.5 / 1 / 2 (seed 0): the fast run's error is the largest.
+
+    Measured ATE 0.034 / 0.069 / 0.156 m (MSCKF clones every <= 3 frames) and 0.028 / 0.022 / 0.145 m (every
+    <= 6 frames): the growth from 0.5 to 1 is not robust, and beyond 2 the error drops again (0.030 m at
+    2.5, 0.029 m at 3.0), so only "fastest > 2 x slowest and > middle" is asserted.
+    """
     ate = []
     for speed in (0.5, 1.0, 2.0):
         cfg = StreamConfig(motion="figure8", seconds=SYNC_SECONDS, speed_scale=speed, time_offset_s=0.01)
         ate.append(run_stream(synthesize_stream(cfg, 0)).metrics["ate_m"])
-    assert ate[0] < ate[1] < ate[2], ate
+    assert ate[2] > 2.0 * ate[0] and ate[2] > ate[1], ate
 
 
 def test_time_offset_calibration_converges_within_1ms():
@@ -143,3 +147,11 @@ def test_online_extrinsic_calibration_fixes_the_extrinsic_run():
     good = run_stream(stream, prm)
     assert good.metrics["ate_m"] < 0.5 * bad.metrics["ate_m"], (bad.metrics, good.metrics)
     assert good.run.monitor.report() == []
+
+
+@pytest.mark.slow
+def test_long_loop_raises_nothing_spurious():
+    """30 s of the long loop (loop closure is out of scope). Measured: no condition, final error 0.026 m."""
+    r = run_stream(synthesize_stream(StreamConfig(motion="long-loop", seconds=30.0, landmark_count=600), 0))
+    assert r.run.monitor.report() == []
+    assert not r.metrics["diverged"]
