@@ -96,7 +96,7 @@ class MsckfParams:
     """
 
     max_clones: int = 11
-    clone_every_n_frames: int = 3
+    clone_every_n_frames: int = 6
     keyframe_min_parallax_px: float = 3.0
     excitation_accel_bias_sigma_m_s2: float = 0.02
     max_features_per_update: int = 50
