@@ -12,7 +12,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 
-def _vec(owner: str, name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+def checked_array(owner: str, name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
     """Read-only float copy of ``value`` with the given shape, or a ValueError naming the field."""
     arr = np.array(value, dtype=float)
     if arr.shape != shape:
@@ -50,7 +50,7 @@ class FlatOutput:
     def __post_init__(self) -> None:
         """Validate shapes; store read-only float arrays."""
         for name in ("p_W", "v_W", "a_W", "j_W"):
-            object.__setattr__(self, name, _vec("FlatOutput", name, getattr(self, name), (3,)))
+            object.__setattr__(self, name, checked_array("FlatOutput", name, getattr(self, name), (3,)))
         for name in ("yaw_rad", "yaw_rate_rad_s"):
             value = float(getattr(self, name))
             if not np.isfinite(value):
@@ -76,9 +76,9 @@ class NavState:
 
     def __post_init__(self) -> None:
         """Validate shapes; store read-only float arrays."""
-        object.__setattr__(self, "R_WB", _vec("NavState", "R_WB", self.R_WB, (3, 3)))
+        object.__setattr__(self, "R_WB", checked_array("NavState", "R_WB", self.R_WB, (3, 3)))
         for name in ("p_WB", "v_WB", "omega_B"):
-            object.__setattr__(self, name, _vec("NavState", name, getattr(self, name), (3,)))
+            object.__setattr__(self, name, checked_array("NavState", name, getattr(self, name), (3,)))
 
     @classmethod
     def from_estimate(cls, estimate: object) -> NavState:
@@ -113,12 +113,14 @@ class ControlCommand:
 
     def __post_init__(self) -> None:
         """Validate shapes; store read-only float arrays."""
-        object.__setattr__(self, "thrusts_N", _vec("ControlCommand", "thrusts_N", self.thrusts_N, (4,)))
         object.__setattr__(
-            self, "moments_B_Nm", _vec("ControlCommand", "moments_B_Nm", self.moments_B_Nm, (3,))
+            self, "thrusts_N", checked_array("ControlCommand", "thrusts_N", self.thrusts_N, (4,))
         )
         object.__setattr__(
-            self, "R_WB_desired", _vec("ControlCommand", "R_WB_desired", self.R_WB_desired, (3, 3))
+            self, "moments_B_Nm", checked_array("ControlCommand", "moments_B_Nm", self.moments_B_Nm, (3,))
+        )
+        object.__setattr__(
+            self, "R_WB_desired", checked_array("ControlCommand", "R_WB_desired", self.R_WB_desired, (3, 3))
         )
         object.__setattr__(self, "collective_N", float(self.collective_N))
 

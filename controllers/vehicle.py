@@ -13,20 +13,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from viotb.controllers.types import checked_array
 from viotb.vio.types import GRAVITY_M_S2
 
 _N_ROTORS = 4
-
-
-def _as_array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
-    """Float copy of ``value`` with the given shape, or a ValueError naming the field."""
-    arr = np.array(value, dtype=float)
-    if arr.shape != shape:
-        raise ValueError(f"VehicleParams.{name}: expected shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"VehicleParams.{name}: non-finite value {arr.tolist()}")
-    arr.setflags(write=False)
-    return arr
 
 
 @dataclass(frozen=True)
@@ -70,7 +60,7 @@ class VehicleParams:
             "max_thrust_N": (_N_ROTORS,),
         }
         for name, shape in arrays.items():
-            object.__setattr__(self, name, _as_array(name, getattr(self, name), shape))
+            object.__setattr__(self, name, checked_array("VehicleParams", name, getattr(self, name), shape))
         inertia = self.inertia_kg_m2
         if not np.allclose(inertia, inertia.T, atol=1e-12) or np.linalg.eigvalsh(inertia).min() <= 0.0:
             raise ValueError(
