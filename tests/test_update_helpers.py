@@ -3,8 +3,15 @@
 import numpy as np
 import pytest
 import scipy.stats
-from viotb.vio.lie import exp_so3
-from viotb.vio.update_helpers import Chi2Table, feature_jacobian, measurement_compress, nullspace_project
+from viotb.vio.lie import exp_so3, log_so3
+from viotb.vio.update_helpers import (
+    Chi2Table,
+    clone_unobservable_basis,
+    feature_jacobian,
+    measurement_compress,
+    nullspace_project,
+    observability_constrain,
+)
 
 
 def _setup(rng):
@@ -107,3 +114,35 @@ def test_measurement_jacobian_annihilates_the_unobservable_directions():
     N_clone[3:6, 3] = skew_ez @ p_WB
     N_f = np.hstack([np.eye(3), (skew_ez @ p_f)[:, None]])
     np.testing.assert_allclose(jac.H_pose @ N_clone + jac.H_feature @ N_f, 0.0, atol=1e-12)
+
+
+def test_clone_unobservable_basis_matches_a_global_yaw_and_shift_of_the_clones():
+    """Finite difference: rotate every clone about world z by alpha and shift it; read the error state."""
+    rng = np.random.default_rng(3)
+    K, dim, offsets = 4, 15 + 6 * 4, 15 + 6 * np.arange(4)
+    R = np.stack([exp_so3(rng.normal(size=3)) for _ in range(K)])
+    p = rng.normal(0.0, 3.0, (K, 3))
+    U = clone_unobservable_basis(R, p, offsets, dim)
+    alpha, shift = 1e-6, np.array([1e-6, -2e-6, 3e-6])
+    Rz = exp_so3(np.array([0.0, 0.0, alpha]))
+    dx = np.zeros(dim)
+    for k, o in enumerate(offsets):
+        dx[o:o + 3] = log_so3(R[k].T @ Rz @ R[k])  # R' = R Exp(dtheta)
+        dx[o + 3:o + 6] = Rz @ p[k] + shift - p[k]
+    # Values are ~1e-6; the neglected second-order term is alpha^2 |p| ~ 1e-11.
+    np.testing.assert_allclose(U @ np.r_[shift, alpha], dx, rtol=0.0, atol=1e-10)
+    assert np.all(U[:15] == 0.0)
+
+
+def test_observability_constrain_is_the_smallest_change_that_annihilates_the_directions():
+    rng = np.random.default_rng(4)
+    U = rng.normal(size=(20, 4))
+    H = rng.normal(size=(3, 7, 20))
+    H_star = observability_constrain(H, U)
+    np.testing.assert_allclose(H_star @ U, 0.0, atol=1e-12)
+    # Independent closed form: remove each row's component in span(U) through an orthonormal basis (SVD).
+    Q = np.linalg.svd(U, full_matrices=False)[0]
+    np.testing.assert_allclose(H_star, H - H @ Q @ Q.T, atol=1e-12)
+    # Rows that already ignore the directions are unchanged.
+    H0 = H_star[0]
+    np.testing.assert_allclose(observability_constrain(H0, U), H0, atol=1e-12)

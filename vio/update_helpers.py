@@ -159,3 +159,47 @@ class Chi2Table:
         if np.any(dof_arr < 0) or np.any(dof_arr >= len(self._table)):
             raise ValueError(f"Chi2Table: dof {dof} outside 0..{len(self._table) - 1}")
         return self._table[dof_arr]
+
+
+def clone_unobservable_basis(R_WB: np.ndarray, p_WB: np.ndarray, offsets: np.ndarray, dim: int) -> np.ndarray:
+    """The four unobservable directions of VIO (global position, yaw about gravity) on the clone blocks.
+
+    Right perturbations ``R = R_hat Exp(dtheta)``: a global translation ``t`` moves every clone by
+    ``dp = t``; a global yaw ``alpha`` about ``e_z`` (world z, gravity) gives ``dtheta_k = alpha R_k^T e_z``
+    and ``dp_k = alpha e_z x p_k`` (Hesch, Kottas, Bowman, Roumeliotis, "Consistency analysis and
+    improvement of vision-aided inertial navigation", TRO 2014; open_vins ``docs/fej.dox``). Other blocks
+    are zero.
+
+    Args:
+        R_WB: Clone orientations at which the directions are evaluated, shape (K, 3, 3).
+        p_WB: Clone positions (m), shape (K, 3).
+        offsets: Error-state offset of each clone's ``[dtheta, dp]`` block, shape (K,).
+        dim: Error-state dimension.
+
+    Returns:
+        ``U`` of shape (dim, 4): columns x, y, z translation and yaw.
+    """
+    e_z = np.array([0.0, 0.0, 1.0])
+    U = np.zeros((dim, 4))
+    for k, o in enumerate(np.asarray(offsets, dtype=int)):
+        U[o + 3:o + 6, 0:3] = np.eye(3)
+        U[o:o + 3, 3] = R_WB[k].T @ e_z
+        U[o + 3:o + 6, 3] = np.cross(e_z, p_WB[k])
+    return U
+
+
+def observability_constrain(H: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """Smallest change of ``H`` (Frobenius norm) with ``H U = 0`` (Hesch et al. TRO 2014, OC-EKF).
+
+    ``H* = H - H U (U^T U)^-1 U^T``: the rows keep their information about every direction except the
+    unobservable ones ``U``, so an update with ``H*`` can never gain information about them.
+
+    Args:
+        H: Jacobians, shape (..., m, dim).
+        U: Unobservable directions, shape (dim, d), full column rank.
+
+    Returns:
+        ``H*`` with the same shape as ``H``.
+    """
+    proj = np.linalg.solve(U.T @ U, U.T)  # (d, dim)
+    return H - (H @ U) @ proj
