@@ -12,9 +12,10 @@ only friend of its ``State``. Other modules read it through :func:`marginal_cova
 
 First-estimate Jacobians (FEJ; Huang, Mourikis, Roumeliotis, "A First-Estimates Jacobian EKF for improving
 SLAM consistency", ISER 2008 / IJRR 2010; open_vins ``fej.dox``): the IMU keeps the values it had right after
-its last propagation (``imu_fej``) and each clone keeps the values it was cloned with; the propagator and the
-update evaluate their Jacobians there so that the four unobservable directions (global position and yaw) stay
-in the null space of every linearized measurement.
+its last propagation (``imu_fej``) and each clone keeps the values it was cloned with. The propagator
+evaluates its Jacobians there; the MSCKF update evaluates them at the current estimates and projects out
+the four unobservable directions (global position and yaw) taken at the clones' first estimates
+(observability-constrained EKF, Hesch et al., TRO 2014; see ``MsckfParams.update_linearization``).
 """
 
 from __future__ import annotations
