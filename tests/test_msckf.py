@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.stats
 from viotb.vio.camera import CameraCalibration, PinholeCamera
+from viotb.vio.initialization import InitResult
 from viotb.vio.lie import exp_so3, quat_wxyz_to_rotmat
 from viotb.vio.msckf import MsckfEstimator, MsckfParams
 from viotb.vio.state import POS, THETA
@@ -20,20 +21,6 @@ EUROC = Path("/work/shared/data/euroc_v1_01_micro/mav0")
 
 # Camera looks along body +x: camera x = -body y, camera y = -body z, camera z = body x.
 R_BC_FORWARD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-@dataclass(frozen=True)
-class TruthInit:
-    """An InitResult-shaped record (the fields MsckfEstimator.initialize reads)."""
-
-    t_s: float
-    R_WB: np.ndarray
-    p_WB: np.ndarray
-    v_WB: np.ndarray
-    gyro_bias_rad_s: np.ndarray
-    accel_bias_m_s2: np.ndarray
-    method: str
-    cov_diag: np.ndarray
 
 
 def _rx(a: float) -> np.ndarray:
@@ -108,7 +95,7 @@ def run_synthetic(seed: int, seconds: float, params: MsckfParams | None = None, 
     R0, p0, v0, _, _ = world.pose(0.0)
     cov_diag = np.array([1e-4] * 3 + [1e-4] * 3 + [1e-4] * 3 + [0.002**2] * 3 + [0.02**2] * 3)
     d = rng.normal(0.0, np.sqrt(cov_diag))
-    init = TruthInit(
+    init = InitResult(
         0.0, R0 @ exp_so3(d[0:3]), p0 + d[3:6], v0 + d[6:9], bg + d[9:12], ba + d[12:15], "truth", cov_diag
     )
     est.initialize(init)
@@ -229,9 +216,9 @@ def test_bad_imu_inputs_raise_clear_errors():
         est.initialize(replace(_truth_init(world), cov_diag=np.ones(9)))
 
 
-def _truth_init(world: SyntheticWorld, t: float = 0.0) -> TruthInit:
+def _truth_init(world: SyntheticWorld, t: float = 0.0) -> InitResult:
     R, p, v, _, _ = world.pose(t)
-    return TruthInit(t, R, p, v, np.zeros(3), np.zeros(3), "truth", np.full(15, 1e-4))
+    return InitResult(t, R, p, v, np.zeros(3), np.zeros(3), "truth", np.full(15, 1e-4))
 
 
 def _feed_truth_imu(est, world, t0, t1, dt=0.005, accel_error_m_s2=None):
