@@ -34,6 +34,7 @@ from viotb.controllers.types import FlatOutput, NavState
 from viotb.envs.camera_model import CameraModelParams
 from viotb.envs.closed_loop import ClosedLoopSim, RigConfig, WindParams
 from viotb.envs.vehicle import vehicle_params_from_model
+from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
 
 ProgressFn = Callable[[float, float], None]
@@ -263,6 +264,8 @@ def fly(
     init_time = None
     thrusts = np.zeros(4)
     n_frames_seen = 0
+    monitor = HealthMonitor()
+    last_imu_seen = None
     wall0 = time.perf_counter()
     while loop.t_s < total_s - 1e-9:
         est = loop.estimate()
@@ -304,9 +307,13 @@ def fly(
         if loop.crashed(airborne):
             crashed = True
         _log_tick(log, loop, phase, est, setpoint, gauge, tr, thrusts)
+        if loop.last_imu is not None and loop.last_imu is not last_imu_seen:
+            last_imu_seen = loop.last_imu
+            monitor.observe_imu(last_imu_seen)
         if loop.frames_delivered != n_frames_seen:
             n_frames_seen = loop.frames_delivered
             h = loop.health()
+            monitor.observe_frame(loop.t_s, h, loop.estimate())
             log.frame_t_s.append(loop.t_s)
             log.frame_features.append(h.tracked_features)
             log.frame_conditions.append(h.conditions)
@@ -335,6 +342,9 @@ def fly(
             "realtime_factor": float(loop.t_s / wall) if wall > 0 else float("inf"),
             "frames_delivered": loop.frames_delivered,
             "frames_dropped": loop.frames_dropped,
+            "conditions": [
+                {"name": c.name, "t_s_first": c.t_s_first, "evidence": c.evidence} for c in monitor.report()
+            ],
         }
     )
     return metrics, log

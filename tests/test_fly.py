@@ -90,3 +90,11 @@ def test_failed_imu_is_reported_and_the_flight_stops_safely():
     assert "not finite" in metrics["reason"]
     # The flight ended at the fault (12 s), not at the requested 14 s, with the last command logged.
     assert 12.0 <= metrics["seconds"] < 12.1
+
+
+def test_gyro_saturation_is_named_by_the_monitor_in_flight():
+    metrics, _ = fly("fly-gyro-saturation", "msckf", seconds=16.0, seed=0, frontend="sim")
+    names = {c["name"]: c["t_s_first"] for c in metrics["conditions"]}
+    assert "imu_saturation" in names
+    # Named during the aggressive manoeuvre (it starts after ground init, takeoff and excitation, ~10.5 s).
+    assert 10.0 < names["imu_saturation"] < 16.0
