@@ -24,7 +24,7 @@ import numpy as np
 from viotb.controllers.mixer import Mixer
 from viotb.controllers.types import ControlCommand, FlatOutput, NavState
 from viotb.controllers.vehicle import VehicleParams
-from viotb.vio.lie import skew, vee
+from viotb.vio.lie import cross, skew, vee
 
 _E3 = np.array([0.0, 0.0, 1.0])
 _MAX_INTEGRATION_STEP_S = 0.1
@@ -89,9 +89,9 @@ def desired_attitude(force_W: np.ndarray, yaw_rad: float) -> np.ndarray:
     """
     b3 = force_W / np.linalg.norm(force_W)
     b1c = np.array([np.cos(yaw_rad), np.sin(yaw_rad), 0.0])
-    b2 = np.cross(b3, b1c)
+    b2 = cross(b3, b1c)
     b2 /= np.linalg.norm(b2)  # nonzero: the tilt limit keeps b3 away from the horizontal plane
-    return np.column_stack([np.cross(b2, b3), b2, b3])
+    return np.column_stack([cross(b2, b3), b2, b3])
 
 
 def attitude_error(R_WB: np.ndarray, R_WB_desired: np.ndarray) -> np.ndarray:
@@ -179,7 +179,7 @@ class SE3Controller:
         # 5. Moments, with the gyroscopic term; the desired angular acceleration is taken as zero.
         J = self._vehicle.inertia_kg_m2
         w = state.omega_B
-        moments_B = -g.kR_Nm_rad * e_R - g.kw_Nm_s_rad * e_w + np.cross(w, J @ w) - J @ (skew(w) @ omega_d_B)
+        moments_B = -g.kR_Nm_rad * e_R - g.kw_Nm_s_rad * e_w + cross(w, J @ w) - J @ (skew(w) @ omega_d_B)
 
         # 6. Mix and saturate; report the wrench the motors actually produce.
         thrusts = self._mixer.motor_thrusts(collective_N, moments_B)

@@ -217,6 +217,8 @@ class ClosedLoopSim:
     def _capture(self, t_exposure: float) -> None:
         """Render / project a frame at the current state, queue it for delivery after the latency."""
         cam = self.config.camera
+        if self.config.estimator == "ground-truth" and not self.config.render_images:
+            return  # the pass-through estimator ignores frames: skip rendering/projection (fast training)
         if self._in_blackout(t_exposure) or self._rng_cam.random() < cam.drop_probability:
             self.frames_dropped += 1
             return
@@ -264,6 +266,8 @@ class ClosedLoopSim:
 
     def _apply_wind(self, dt: float) -> None:
         w = self.config.wind
+        if w.gust_sigma_N <= 0.0 and not any(w.mean_force_W_N):
+            return  # calm air: xfrc_applied stays zero
         if w.gust_sigma_N > 0.0:
             a = np.exp(-dt / w.gust_time_constant_s)
             noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * np.sqrt(1.0 - a * a)

@@ -37,7 +37,7 @@ from viotb.envs.vehicle import vehicle_params_from_model
 from viotb.models.constants import CHASE_CAMERA, ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
 from viotb.vio.factory import ESTIMATOR_NAMES, FRONTEND_NAMES
 from viotb.vio.initialization import InitResult
-from viotb.vio.lie import exp_so3, rotmat_to_quat_wxyz, rotz, yaw_from_rotmat
+from viotb.vio.lie import cross, exp_so3, rotmat_to_quat_wxyz, rotz, yaw_from_rotmat
 from viotb.vio.types import StateEstimate
 
 ACTION_TYPES = ("motors", "ctbr", "velocity", "position")
@@ -496,7 +496,7 @@ class VioQuadEnv(gymnasium.Env):
             omega_cmd = a[1:] * np.asarray(cfg.max_body_rate_rad_s)
             w = est.omega_B_rad_s
             J = v.inertia_kg_m2
-            moments = J @ (np.asarray(cfg.rate_bandwidth_rad_s) * (omega_cmd - w)) + np.cross(w, J @ w)
+            moments = J @ (np.asarray(cfg.rate_bandwidth_rad_s) * (omega_cmd - w)) + cross(w, J @ w)
             return self._mixer.motor_thrusts(collective, moments)
         if cfg.action_type == "velocity":
             self._yaw_setpoint += a[3] * cfg.max_yaw_rate_rad_s * cfg.inner_ctrl_dt

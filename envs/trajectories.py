@@ -27,7 +27,7 @@ from dataclasses import replace as dataclass_replace
 from typing import Protocol, runtime_checkable
 
 import numpy as np
-from viotb.vio.lie import skew, vee
+from viotb.vio.lie import cross, skew, vee
 from viotb.vio.types import gravity_W
 
 
@@ -231,18 +231,9 @@ def _normalize_d2(w: np.ndarray) -> np.ndarray:
     return np.stack([u, u1, u2])
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (..., 3) arrays (a lean ``np.cross`` for tiny inputs)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
-    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
-    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-    return out
-
-
 def _cross_d2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a x b`` and its first two time derivatives from ``[a, a', a'']`` and ``[b, b', b'']``."""
-    c = _cross(a[[0, 1, 0, 2, 1, 0]], b[[0, 0, 1, 0, 1, 2]])
+    c = cross(a[[0, 1, 0, 2, 1, 0]], b[[0, 0, 1, 0, 1, 2]])
     return np.stack([c[0], c[1] + c[2], c[3] + 2.0 * c[4] + c[5]])
 
 

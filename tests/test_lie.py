@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from viotb.vio.lie import (
+    cross,
     exp_se3,
     exp_so3,
     left_jacobian_so3,
@@ -35,6 +36,11 @@ def test_skew_vee_cross_product():
     a, b = rng.normal(size=(2, 3))
     np.testing.assert_allclose(skew(a) @ b, np.cross(a, b), atol=1e-15)
     np.testing.assert_allclose(vee(skew(a)), a, atol=1e-15)
+    # The lean row-wise cross agrees with numpy, also broadcast over leading axes.
+    np.testing.assert_allclose(cross(a, b), np.cross(a, b), atol=1e-15)
+    A, B = rng.normal(size=(2, 4, 5, 3))
+    np.testing.assert_allclose(cross(A, B), np.cross(A, B), atol=1e-14)
+    np.testing.assert_allclose(cross(A, b), np.cross(A, b), atol=1e-14)
 
 
 def test_exp_so3_matches_scipy():

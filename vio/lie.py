@@ -23,6 +23,18 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (..., 3) arrays; a lean ``np.cross`` for the tiny inputs of control loops.
+
+    ``np.cross`` spends ~10 us per call on axis bookkeeping, which dominated the 250 Hz controller.
+    """
+    out = np.empty(np.broadcast_shapes(np.shape(a), np.shape(b)))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
 def vee(m: np.ndarray) -> np.ndarray:
     """Inverse of :func:`skew` for a 3x3 (approximately) skew-symmetric matrix, shape (3,)."""
     return np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) * 0.5
