@@ -314,6 +314,11 @@ def fly(
             n_frames_seen = loop.frames_delivered
             h = loop.health()
             monitor.observe_frame(loop.t_s, h, loop.estimate())
+            if "divergence" in monitor.active() and not h.diverged:
+                # The monitor's bound is tighter than the filter's own (a drone flying blind on the IMU alone
+                # is lost long before its covariance explodes): stop the flight the same way.
+                cond = next(c for c in monitor.report() if c.name == "divergence")
+                diverged, reason = True, f"health monitor: {cond.evidence}"
             log.frame_t_s.append(loop.t_s)
             log.frame_features.append(h.tracked_features)
             log.frame_conditions.append(h.conditions)
@@ -321,7 +326,7 @@ def fly(
             on_tick(loop, log)
         if progress is not None:
             progress(loop.t_s, total_s)
-        if crashed:
+        if crashed or diverged:
             break
     wall = time.perf_counter() - wall0
     loop.close()

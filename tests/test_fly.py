@@ -98,3 +98,13 @@ def test_gyro_saturation_is_named_by_the_monitor_in_flight():
     assert "imu_saturation" in names
     # Named during the aggressive manoeuvre (it starts after ground init, takeoff and excitation, ~10.5 s).
     assert 10.0 < names["imu_saturation"] < 16.0
+
+
+def test_dark_room_flight_is_stopped_by_the_health_monitor():
+    metrics, _ = fly("fly-dark-room", "msckf", seconds=16.0, seed=0, frontend="klt")
+    names = {c["name"]: c["t_s_first"] for c in metrics["conditions"]}
+    # No texture can be seen: feature poverty right after initialization, then the IMU-only drift makes
+    # the position sigma pass the monitor's bound and the runner stops the flight instead of flying blind.
+    assert names["feature_poverty"] < 2.5
+    assert metrics["diverged"] and metrics["reason"].startswith("health monitor")
+    assert metrics["seconds"] < 16.0 and not metrics["crashed"]
