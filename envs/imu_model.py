@@ -219,13 +219,40 @@ class ImuModel:
         return self._M_accel.copy()
 
     def measure(self, t_s: float, omega_B_true: np.ndarray, specific_force_B_true: np.ndarray) -> ImuSample:
-        """One reading from the true angular rate (rad/s) and specific force (m/s^2) in B, shape (3,) each."""
-        series = self.measure_series(
-            np.array([t_s], dtype=float),
-            np.asarray(omega_B_true, dtype=float).reshape(1, 3),
-            np.asarray(specific_force_B_true, dtype=float).reshape(1, 3),
+        """One reading from the true angular rate (rad/s) and specific force (m/s^2) in B, shape (3,) each.
+
+        A single-sample fast path of :meth:`measure_series_with_biases` (the closed loop calls it every IMU
+        period): the same draws in the same order and the same floating-point operations, so the output is
+        bit-identical to ``measure_series`` on the same samples (tested).
+
+        Raises:
+            ValueError: A vector that is not shape (3,) or not finite.
+        """
+        omega = np.asarray(omega_B_true, dtype=float)
+        f = np.asarray(specific_force_B_true, dtype=float)
+        if omega.shape != (3,) or f.shape != (3,):
+            raise ValueError(
+                "measure expects omega_B_true (3,) and specific_force_B_true (3,); "
+                f"got {omega.shape}, {f.shape}"
+            )
+        if not (np.isfinite(omega).all() and np.isfinite(f).all()):
+            raise ValueError("measure: omega_B_true and specific_force_B_true must be finite")
+        draws = self._rng.standard_normal((4, 3)) * self._sigmas[:, None]
+        bias_g, bias_a = self._gyro_bias_rad_s, self._accel_bias_m_s2
+        # Same expression shapes as the series ((1, 3) @ (3, 3)) so BLAS sums in the same order.
+        gyro = (omega[None] @ self._M_gyro.T)[0] + bias_g + draws[0]
+        accel = (f[None] @ self._M_accel.T)[0] + bias_a + draws[1]
+        self._gyro_bias_rad_s = bias_g + draws[2]
+        self._accel_bias_m_s2 = bias_a + draws[3]
+        p = self._params
+        gyro = _quantize(gyro, p.gyro_quantization_rad_s)
+        accel = _quantize(accel, p.accel_quantization_m_s2)
+        saturated = bool(
+            (np.abs(gyro) > p.gyro_range_rad_s).any() or (np.abs(accel) > p.accel_range_m_s2).any()
         )
-        return series.sample(0)
+        gyro = np.clip(gyro, -p.gyro_range_rad_s, p.gyro_range_rad_s)
+        accel = np.clip(accel, -p.accel_range_m_s2, p.accel_range_m_s2)
+        return ImuSample(float(t_s), gyro, accel, saturated)
 
     def measure_series(self, t_s: np.ndarray, omega_B: np.ndarray, f_B: np.ndarray) -> ImuSeries:
         """Readings for N consecutive samples (see :meth:`measure_series_with_biases`)."""

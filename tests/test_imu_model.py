@@ -176,3 +176,33 @@ def test_bias_model_and_error_matrices():
     np.testing.assert_allclose(steps.std(), 2.0e-3 * math.sqrt(0.01), rtol=0.02)
     # The model's current bias is the one after the last step.
     assert not np.array_equal(model.accel_bias_m_s2, bias_a[-1])
+
+
+def test_single_sample_fast_path_bit_identical_with_saturation_and_biases():
+    # measure() is a separate single-sample code path: it must match the vectorized series exactly, including
+    # the saturation flags, the clipped values and the bias each sample carried.
+    params = dataclasses.replace(imu_preset("adis16448"), gyro_range_rad_s=1.5, accel_range_m_s2=12.0)
+    rng = np.random.default_rng(0)
+    n = 300
+    t = np.arange(n) / params.rate_hz
+    omega = rng.normal(scale=1.0, size=(n, 3))
+    f = rng.normal(scale=2.0, size=(n, 3)) + [0.0, 0.0, 9.81]
+    batch = ImuModel(params, np.random.default_rng(3))
+    series, bias_g, bias_a = batch.measure_series_with_biases(t, omega, f)
+    assert 0 < int(series.saturated.sum()) < n  # both branches exercised
+    seq = ImuModel(params, np.random.default_rng(3))
+    for i in range(n):
+        np.testing.assert_array_equal(seq.gyro_bias_rad_s, bias_g[i])
+        np.testing.assert_array_equal(seq.accel_bias_m_s2, bias_a[i])
+        s = seq.measure(t[i], omega[i], f[i])
+        assert s.t_s == t[i] and s.saturated == bool(series.saturated[i])
+        np.testing.assert_array_equal(s.gyro_B_rad_s, series.gyro_B_rad_s[i])
+        np.testing.assert_array_equal(s.accel_B_m_s2, series.accel_B_m_s2[i])
+
+
+def test_single_sample_rejects_bad_input():
+    model = ImuModel(imu_preset("adis16448"), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="omega_B_true"):
+        model.measure(0.0, np.zeros(2), np.zeros(3))
+    with pytest.raises(ValueError, match="finite"):
+        model.measure(0.0, np.array([0.0, np.nan, 0.0]), np.zeros(3))
