@@ -48,7 +48,7 @@ OBS_MODES = ("state", "dict")
 ORIENTATIONS = ("rot6d", "quat")
 STARTS = ("air", "ground")
 RENDER_CAMERAS = (CHASE_CAMERA, ONBOARD_CAMERA)
-_FAILURES = ("crashed", "left_arena", "too_far", "diverged")
+FAILURE_REASONS = ("crashed", "left_arena", "too_far", "diverged")
 """Termination reasons that cost the crash penalty (``success`` does not)."""
 
 
@@ -399,6 +399,7 @@ class VioQuadEnv(gymnasium.Env):
         self._controller: SE3Controller | None = None
         self._renderer = None
         self._imu: deque = deque(maxlen=cfg.imu_window)
+        self._setpoint_cache: tuple[tuple, FlatOutput] | None = None
 
     @property
     def rig(self) -> ClosedLoopSim | None:
@@ -507,10 +508,23 @@ class VioQuadEnv(gymnasium.Env):
                 yaw_rate_rad_s=a[3] * cfg.max_yaw_rate_rad_s,
             )
         else:
+            setpoint = self._position_setpoint(a)
+        return self._controller.update(self._loop.t_s, NavState.from_estimate(est), setpoint).thrusts_N
+
+    def _position_setpoint(self, a: np.ndarray) -> FlatOutput:
+        """Setpoint of the ``position`` action: constant over a policy step, so built once per step.
+
+        Cached on the action and the target (both fixed during a step); the validated record is reused by
+        the step's ``ctrl_dt / inner_ctrl_dt`` low-level ticks instead of being rebuilt at each.
+        """
+        key = (a.tobytes(), self._target_est.tobytes(), self._yaw0)
+        if self._setpoint_cache is None or self._setpoint_cache[0] != key:
+            cfg = self.config
             setpoint = FlatOutput(
                 p_W=self._target_est + a[:3] * cfg.position_range_m, yaw_rad=self._yaw0 + a[3] * np.pi
             )
-        return self._controller.update(self._loop.t_s, NavState.from_estimate(est), setpoint).thrusts_N
+            self._setpoint_cache = (key, setpoint)
+        return self._setpoint_cache[1]
 
     # ------------------------------------------------------------------ reset
 
@@ -710,7 +724,7 @@ class VioQuadEnv(gymnasium.Env):
             "tracking": reward_tracking(err, w.tracking, w.tracking_scale_m),
             "effort": cost_effort(a, self._neutral, w.effort),
             "smoothness": cost_smoothness(a, self._prev_action, w.smoothness),
-            "crash": cost_crash(reason in _FAILURES, w.crash),
+            "crash": cost_crash(reason in FAILURE_REASONS, w.crash),
             **task_terms,
         }
         self._prev_action = a
