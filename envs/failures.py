@@ -357,6 +357,66 @@ def run_stream(
     return out
 
 
+def along_track_velocity_stats(result: RunResult, t_from_s: float, t_to_s: float) -> tuple[float, float]:
+    """Error and filter sigma of the velocity along the direction of travel over a time window.
+
+    With a monocular camera the metric scale lives in the velocity (the images fix only its direction), so
+    ``e = d . v_est - |v_true|`` with ``d = v_true / |v_true|`` is the scale error times the speed, and
+    ``sigma = sqrt(d^T P_vv d)`` (``P_vv`` the velocity block, rows 6:9, of the 15x15 covariance) is the
+    filter's own uncertainty of it.
+
+    Args:
+        result: A :func:`run_stream` result.
+        t_from_s: Window start (s, IMU clock), inclusive.
+        t_to_s: Window end (s), exclusive.
+
+    Returns:
+        ``(rms_error_m_s, mean_sigma_m_s)`` over the estimates in the window moving faster than 0.2 m/s.
+
+    Raises:
+        ValueError: No such estimate in the window.
+    """
+    gt = result.stream.truth
+    err, sig = [], []
+    for est in result.run.estimates:
+        if est is None or not t_from_s <= est.t_s < t_to_s:
+            continue
+        v = np.array([np.interp(est.t_s, gt.t_s, gt.v_WB[:, j]) for j in range(3)])
+        speed = float(np.linalg.norm(v))
+        if speed < 0.2:
+            continue
+        d = v / speed
+        err.append(float(d @ est.v_WB) - speed)
+        sig.append(float(np.sqrt(max(d @ est.cov[6:9, 6:9] @ d, 0.0))))
+    if not err:
+        raise ValueError(f"along_track_velocity_stats: no moving estimate in [{t_from_s}, {t_to_s}) s")
+    return float(np.sqrt(np.mean(np.square(err)))), float(np.mean(sig))
+
+
+def anchored_position_error_m(result: RunResult) -> tuple[np.ndarray, np.ndarray]:
+    """Odometry error without any trajectory alignment: displacement from the first estimate vs truth.
+
+    The estimator's world frame has its origin and yaw at the first (static) pose, as does a trajectory
+    that starts at rest facing +x, so ``|(p_k - p_0) - (p_gt,k - p_gt,0)|`` is the drift accumulated since
+    initialization (an alignment over the whole run would spread it over the trajectory and hide it).
+
+    Returns:
+        ``(path_length_m, error_m)``, shapes (N,) each: true distance travelled and error at each estimate.
+
+    Raises:
+        ValueError: Fewer than two estimates.
+    """
+    ests = [e for e in result.run.estimates if e is not None]
+    if len(ests) < 2:
+        raise ValueError(f"anchored_position_error_m: {len(ests)} estimates, need at least 2")
+    gt = result.stream.truth
+    t = np.array([e.t_s for e in ests])
+    p = np.array([e.p_WB for e in ests])
+    g = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(g, axis=0), axis=1))])
+    return s, np.linalg.norm((p - p[0]) - (g - g[0]), axis=1)
+
+
 def _plot(path: Path, title: str, runs: dict[str, RunResult]) -> None:
     """Position error vs time of each run (PNG)."""
     import matplotlib  # noqa: PLC0415

@@ -6,10 +6,17 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from viotb.envs.failures import FAILURES, StreamConfig, failure_report, run_stream, synthesize_stream
+from viotb.envs.failures import (
+    FAILURES,
+    StreamConfig,
+    along_track_velocity_stats,
+    anchored_position_error_m,
+    failure_report,
+    run_stream,
+    synthesize_stream,
+)
 from viotb.envs.fly import FLY_SCENARIOS
 from viotb.envs.scenarios import get_scenario
-from viotb.vio.metrics import scale_error_pct
 from viotb.vio.msckf import MsckfParams
 
 
@@ -112,44 +119,71 @@ def test_failure_report_writes_plot(tmp_path):
     assert rep["fixed"]["ate_m"] < rep["failing"]["ate_m"]
 
 
-def _half_scale_errors_pct(r) -> tuple[float, float]:
-    """|scale error| (%) of a sim(3) fit on the first and on the second half of the estimated positions."""
-    ests = [e for e in r.run.estimates if e is not None]
-    t = np.array([e.t_s for e in ests])
-    p = np.array([e.p_WB for e in ests])
-    gt = r.stream.truth
-    g = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
-    n = len(t) // 2
-    return abs(scale_error_pct(p[:n], g[:n])), abs(scale_error_pct(p[n:], g[n:]))
+# Constant-velocity line (8 s: 2 s ramps, cruise at 1.0 m/s from 3.5 s to 7.5 s of stream time) against an
+# excited figure-8 of the same length and a similar speed (mean 1.05 m/s, accelerations up to ~1.3 m/s^2).
+EARLY_S, LATE_S = (3.5, 4.5), (6.5, 7.5)
 
 
-@pytest.fixture(scope="module")
-def no_excitation_runs():
-    spec = FAILURES["fail-no-excitation"]
-    bad = run_stream(synthesize_stream(replace(spec.config(1.0), landmark_count=600), 0))
-    cfg_fix, prm = spec.fixed(1.0)
-    good = run_stream(synthesize_stream(replace(cfg_fix, landmark_count=600), 0), prm)
-    return bad, good
+def _excitation_pair(seed: int) -> tuple:
+    line = run_stream(synthesize_stream(
+        replace(FAILURES["fail-no-excitation"].config(1.0), landmark_count=600), seed))
+    fig8 = run_stream(synthesize_stream(
+        StreamConfig(motion="figure8", seconds=8.0, speed_scale=1.0, landmark_count=600), seed))
+    return line, fig8
 
 
-def test_no_excitation_is_flagged_and_excited_run_is_not(no_excitation_runs):
-    bad, good = no_excitation_runs
-    assert bad.run.monitor.first_time("insufficient_excitation") is not None
-    assert good.run.monitor.first_time("insufficient_excitation") is None
+def _excitation_stats(seeds) -> dict:
+    """Along-track velocity error (RMS over seeds) and mean filter sigma (m/s), per run and window."""
+    acc = {k: [] for k in ("line", "fig8")}
+    for seed in seeds:
+        for name, r in zip(("line", "fig8"), _excitation_pair(seed), strict=True):
+            acc[name].append([*along_track_velocity_stats(r, *EARLY_S),
+                              *along_track_velocity_stats(r, *LATE_S)])
+            if name == "line":
+                assert r.run.monitor.first_time("insufficient_excitation") is not None, seed
+    out = {}
+    for name, rows in acc.items():
+        a = np.array(rows)  # columns: early err, early sigma, late err, late sigma
+        out[name] = {"early_err": float(np.sqrt(np.mean(a[:, 0] ** 2))), "early_sig": float(np.mean(a[:, 1])),
+                     "late_err": float(np.sqrt(np.mean(a[:, 2] ** 2))), "late_sig": float(np.mean(a[:, 3]))}
+    return out
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="symptom not reproduced on seed 0 since the observability-constrained update: constant-velocity "
-    "scale error 1.26 % in the first half -> 1.02 % in the second (was 0.13 % -> 0.97 % before); one seed "
-    "is too few to show the wandering scale, a multi-seed version is still to write",
-)
-def test_no_excitation_scale_error_grows(no_excitation_runs):
-    bad, good = no_excitation_runs
-    bad_first, bad_second = _half_scale_errors_pct(bad)
-    good_first, good_second = _half_scale_errors_pct(good)
-    assert bad_second > bad_first, (bad_first, bad_second)  # constant velocity: scale error grows
-    assert good_second <= good_first, (good_first, good_second)  # excited: it does not
+def _assert_scale_wanders(st: dict) -> None:
+    line, fig8 = st["line"], st["fig8"]
+    # Excitation corrects the scale, the cruise does not: at the end of the cruise the along-track velocity
+    # error is well above the excited run's...
+    assert line["late_err"] > 1.5 * fig8["late_err"], st
+    # ...and the filter does not know it: its along-track sigma shrinks as much as on the excited run, so the
+    # error is well beyond its own sigma at constant velocity and not on the figure-8.
+    assert line["late_err"] > 1.3 * line["late_sig"], st
+    assert fig8["late_err"] < 1.3 * fig8["late_sig"], st
+
+
+def test_no_excitation_scale_wanders_multi_seed():
+    """Constant velocity leaves the scale uncorrected and the filter overconfident about it (5 seeds).
+
+    The lesson: "with no acceleration, scale is unobservable and the estimate of it wanders ... the system
+    looks healthy". With a monocular camera the scale lives in the velocity, so the statistic is the error of
+    the velocity along the direction of travel (scale error x speed) in the first and last second of the
+    cruise, against the same windows of an excited figure-8, together with the filter's own sigma of it.
+
+    Measured (m/s x 100, RMS error over seeds / mean sigma), seeds 0-4: line 4.13 / 3.81 early -> 3.86 / 2.12
+    late, figure-8 2.20 / 2.67 -> 1.57 / 1.58; seeds 0-9: line 3.70 / 3.65 -> 3.30 / 2.11, figure-8
+    2.22 / 2.73 -> 1.76 / 1.59. So the cruise does not *grow* the error on this 4 s cruise with this IMU
+    (the relative along-track error over 20 seeds is 3.5 % early and 2.6 % late; the sim(3) scale error of the
+    two halves, the old single-seed statistic, went 1.26 % -> 1.02 % on seed 0), and growth is not asserted.
+    What holds: it is not corrected (late error 2.5x the figure-8's) while the filter's sigma shrinks by
+    the same ~44 % on both runs (spurious scale information along the unobservable direction), so the late
+    error is 1.8 sigma on the line and 1.0 sigma on the figure-8: the sneaky, healthy-looking failure.
+    """
+    _assert_scale_wanders(_excitation_stats(range(5)))
+
+
+@pytest.mark.slow
+def test_no_excitation_scale_wanders_monte_carlo():
+    """The same over 20 seeds."""
+    _assert_scale_wanders(_excitation_stats(range(20)))
 
 
 def test_online_extrinsic_calibration_fixes_the_extrinsic_run():
@@ -170,3 +204,29 @@ def test_long_loop_raises_nothing_spurious():
     r = run_stream(synthesize_stream(StreamConfig(motion="long-loop", seconds=30.0, landmark_count=600), 0))
     assert r.run.monitor.report() == []
     assert not r.metrics["diverged"]
+
+
+@pytest.mark.slow
+def test_long_loop_drift_is_not_corrected_at_the_return():
+    """Steady drift -> odometry: 3 laps (53.6 m) back to the start pose, 5 seeds, no alignment.
+
+    The error is the displacement since initialization against the truth (``anchored_position_error_m``),
+    read at equal path-length checkpoints (1/3, 2/3 and all of the path: the ends of laps 1, 2 and 3, all at
+    the start pose). Without loop closure returning to a known place corrects nothing: the estimate does not
+    come back to its own start and the error at the returns grows with distance on average.
+
+    Measured (cm) at 1/3 / 2/3 / end, seeds 0-4: 1.3/2.7/5.2, 3.9/3.5/4.0, 2.8/4.4/6.5, 1.3/3.4/5.3,
+    4.1/3.6/5.8; means 2.7 / 3.5 / 5.4 (per seed not always monotonic: seeds 1 and 4 dip at 2/3).
+    """
+    at = []
+    cfg = StreamConfig(motion="long-loop", seconds=30.0, landmark_count=600)
+    for seed in range(5):
+        r = run_stream(synthesize_stream(cfg, seed))
+        s, err = anchored_position_error_m(r)
+        truth_gap = np.linalg.norm(r.stream.truth.p_WB[-1] - r.stream.truth.p_WB[0])
+        assert truth_gap < 1e-6, truth_gap  # the loop really ends where it started
+        at.append([err[np.argmin(np.abs(s - f * s[-1]))] for f in (1.0 / 3.0, 2.0 / 3.0, 1.0)])
+        assert at[-1][2] > 0.02, (seed, at[-1])  # the final return is not snapped back (> 2 cm)
+    mean = np.mean(at, axis=0)
+    assert mean[0] < mean[1] < mean[2], at
+    assert mean[2] > 1.5 * mean[0], at
