@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from viotb.envs.failures import (
 from viotb.envs.fly import FLY_SCENARIOS
 from viotb.envs.scenarios import get_scenario
 from viotb.vio.msckf import MsckfParams
+from viotb.vio.types import StateEstimate, TrajectoryArrays
 
 
 def test_registered_open_and_closed_loop():
@@ -149,41 +151,81 @@ def _excitation_stats(seeds) -> dict:
     return out
 
 
-def _assert_scale_wanders(st: dict) -> None:
-    line, fig8 = st["line"], st["fig8"]
-    # Excitation corrects the scale, the cruise does not: at the end of the cruise the along-track velocity
-    # error is well above the excited run's...
-    assert line["late_err"] > 1.5 * fig8["late_err"], st
-    # ...and the filter does not know it: its along-track sigma shrinks as much as on the excited run, so the
-    # error is well beyond its own sigma at constant velocity and not on the figure-8.
-    assert line["late_err"] > 1.3 * line["late_sig"], st
-    assert fig8["late_err"] < 1.3 * fig8["late_sig"], st
+def _fake_result(t_s, p_est, v_est, cov, p_gt, v_gt):
+    """A duck-typed RunResult with hand-made estimates and truth (only the fields the helpers read)."""
+    ests = [StateEstimate(float(t), np.eye(3), p, v, cov=cov)
+            for t, p, v in zip(t_s, p_est, v_est, strict=True)]
+    truth = TrajectoryArrays(np.asarray(t_s), np.asarray(p_gt), np.tile([1.0, 0, 0, 0], (len(t_s), 1)),
+                             np.asarray(v_gt))
+    return SimpleNamespace(run=SimpleNamespace(estimates=[None, *ests]), stream=SimpleNamespace(truth=truth))
 
 
-def test_no_excitation_scale_wanders_multi_seed():
-    """Constant velocity leaves the scale uncorrected and the filter overconfident about it (5 seeds).
+def test_along_track_and_anchored_error_helpers_closed_form():
+    t = np.linspace(0.0, 2.0, 21)
+    v_gt = np.tile([0.0, 2.0, 0.0], (21, 1))  # 2 m/s along +y
+    p_gt = np.outer(t, [0.0, 2.0, 0.0]) + [5.0, 1.0, 0.0]
+    cov = np.diag([0.0] * 6 + [9.0, 0.04, 9.0] + [0.0] * 6)  # sigma 0.2 m/s along y, 3 across
+    # Estimate: 10 % too fast along track plus an across-track error that must not count; its own origin.
+    v_est = np.tile([0.5, 2.2, 0.0], (21, 1))
+    p_est = np.outer(t, [0.5, 2.2, 0.0])
+    r = _fake_result(t, p_est, v_est, cov, p_gt, v_gt)
+    err, sig = along_track_velocity_stats(r, 0.5, 1.5)
+    assert abs(err - 0.2) < 1e-12 and abs(sig - 0.2) < 1e-12
+    s, e = anchored_position_error_m(r)
+    np.testing.assert_allclose(s, 2.0 * t, atol=1e-12)  # true path length
+    np.testing.assert_allclose(e, np.hypot(0.5, 0.2) * t, atol=1e-12)  # no offset or alignment absorbed
+    with pytest.raises(ValueError, match="no moving estimate"):
+        along_track_velocity_stats(r, 5.0, 6.0)
 
-    The lesson: "with no acceleration, scale is unobservable and the estimate of it wanders ... the system
-    looks healthy". With a monocular camera the scale lives in the velocity, so the statistic is the error of
-    the velocity along the direction of travel (scale error x speed) in the first and last second of the
-    cruise, against the same windows of an excited figure-8, together with the filter's own sigma of it.
 
-    Measured (m/s x 100, RMS error over seeds / mean sigma), seeds 0-4: line 4.13 / 3.81 early -> 3.86 / 2.12
-    late, figure-8 2.20 / 2.67 -> 1.57 / 1.58; seeds 0-9: line 3.70 / 3.65 -> 3.30 / 2.11, figure-8
-    2.22 / 2.73 -> 1.76 / 1.59. So the cruise does not *grow* the error on this 4 s cruise with this IMU
-    (the relative along-track error over 20 seeds is 3.5 % early and 2.6 % late; the sim(3) scale error of the
-    two halves, the old single-seed statistic, went 1.26 % -> 1.02 % on seed 0), and growth is not asserted.
-    What holds: it is not corrected (late error 2.5x the figure-8's) while the filter's sigma shrinks by
-    the same ~44 % on both runs (spurious scale information along the unobservable direction), so the late
-    error is 1.8 sigma on the line and 1.0 sigma on the figure-8: the sneaky, healthy-looking failure.
-    """
-    _assert_scale_wanders(_excitation_stats(range(5)))
+@pytest.fixture(scope="module")
+def no_excitation_runs():
+    spec = FAILURES["fail-no-excitation"]
+    bad = run_stream(synthesize_stream(replace(spec.config(1.0), landmark_count=600), 0))
+    cfg_fix, prm = spec.fixed(1.0)
+    good = run_stream(synthesize_stream(replace(cfg_fix, landmark_count=600), 0), prm)
+    return bad, good
+
+
+def test_no_excitation_is_flagged_and_excited_run_is_not(no_excitation_runs):
+    bad, good = no_excitation_runs
+    assert bad.run.monitor.first_time("insufficient_excitation") is not None
+    assert good.run.monitor.first_time("insufficient_excitation") is None
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(
+    strict=False,
+    reason="not reproduced over 20 seeds: along-track velocity error (RMS, m/s x 100) / filter sigma, "
+    "first -> last second of the cruise: line 3.53 / 3.72 -> 2.61 / 2.12, figure-8 2.53 / 2.69 -> 2.04 / "
+    "1.59. The cruise error shrinks instead of growing, ends only 1.28x the excited run's, and is 1.23 "
+    "sigma vs the figure-8's 1.28 (seeds 0-4 alone, 3.86 vs 1.57 and 1.8 vs 1.0 sigma, would have passed "
+    "by chance)",
+)
 def test_no_excitation_scale_wanders_monte_carlo():
-    """The same over 20 seeds."""
-    _assert_scale_wanders(_excitation_stats(range(20)))
+    """Constant velocity leaves the scale uncorrected while excitation corrects it (20 seeds).
+
+    The lesson: "with no acceleration, scale is unobservable and the estimate of it wanders ... the system
+    looks healthy". With a monocular camera the scale lives in the velocity, so the statistic is the error of
+    the velocity along the direction of travel (scale error x speed, :func:`along_track_velocity_stats`) in
+    the first and the last second of the 4 s cruise, against the same windows of an excited figure-8 of the
+    same length and a similar speed, with the filter's own sigma of it. The claim implies (1) the cruise does
+    not reduce the error while the excited run does, so it ends well above the excited run's, and (2) the
+    filter does not see it (its sigma has no information to shrink on, so a shrinking sigma means an error
+    beyond sigma).
+
+    Why it fails here (see the xfail numbers): an EKF carries the scale learnt in the 2 s acceleration ramp in
+    its velocity, and at constant velocity the IMU (ADIS16448 noise) holds that velocity to well under
+    1 cm/s over 4 s; the 6 m room does not allow a longer cruise (a 16 s line at 0.43 m/s: the relative
+    along-track error went 9.6 % -> 4.1 % over 8 seeds). The filter's sigma shrinks by ~43 % on both runs.
+    The old single-seed statistic (sim(3) scale error of the two halves) went 1.26 % -> 1.02 % on seed 0.
+    """
+    st = _excitation_stats(range(20))
+    line, fig8 = st["line"], st["fig8"]
+    assert line["late_err"] >= line["early_err"], st  # the cruise does not correct the scale...
+    assert fig8["late_err"] < fig8["early_err"], st  # ...the excitation does
+    assert line["late_err"] > 1.5 * fig8["late_err"], st
+    assert line["late_err"] > 1.3 * line["late_sig"] and fig8["late_err"] < 1.3 * fig8["late_sig"], st
 
 
 def test_online_extrinsic_calibration_fixes_the_extrinsic_run():
