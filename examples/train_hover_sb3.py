@@ -10,7 +10,10 @@ Needs the ``rl`` extra (``pip install -e .[rl]``: stable-baselines3 and torch). 
    controller holds the commanded velocity, so the policy has to learn to steer back to the point against
    the wind), ``n_envs`` copies in a ``SubprocVecEnv`` and observation/reward normalization
    (``VecNormalize``). The reward is the env's own sum of named terms with a sharper tracking scale
-   (:data:`REWARDS`).
+   (:data:`REWARDS`). The policy is LINEAR on the normalized observation (the critic a 64x64 MLP) with a
+   small initial exploration std (``exp(-1.5)``): hover on velocity commands is a near-linear feedback
+   problem, and this learns it within the default budget where a 64x64 policy with SB3's defaults (and
+   ``log_std_init=-1``, lr 3e-4) ended worse than the zero action after 60k steps.
 2. Evaluate the trained policy (deterministic, frozen normalization statistics) and the zero-action baseline
    (hold zero velocity where you are: drifts with the wind) on the same seeded episodes, with ground-truth
    observations and with ``estimator="msckf", frontend="sim"`` observations (VIO on simulated features).
@@ -141,7 +144,10 @@ def train(args: argparse.Namespace):
         clip_range=0.2,
         ent_coef=0.0,
         seed=args.seed,
-        policy_kwargs={"log_std_init": args.log_std_init, "net_arch": [64, 64]},
+        policy_kwargs={
+            "log_std_init": args.log_std_init,
+            "net_arch": {"pi": list(args.policy_layers), "vf": [64, 64]},
+        },
         device="cpu",
         verbose=0,
     )
@@ -163,18 +169,26 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--no-subproc", dest="subproc", action="store_false", help="DummyVecEnv instead of SubprocVecEnv"
     )
-    parser.add_argument("--n-steps", type=int, default=256, help="PPO rollout length per env")
-    parser.add_argument("--batch-size", type=int, default=256, help="PPO minibatch size")
+    parser.add_argument("--n-steps", type=int, default=128, help="PPO rollout length per env")
+    parser.add_argument("--batch-size", type=int, default=128, help="PPO minibatch size")
     parser.add_argument("--n-epochs", type=int, default=10, help="PPO epochs per update")
-    parser.add_argument("--learning-rate", type=float, default=3e-4, help="Adam learning rate")
-    parser.add_argument("--gamma", type=float, default=0.98, help="discount (horizon ~1 s at 50 Hz)")
+    parser.add_argument("--learning-rate", type=float, default=1e-3, help="Adam learning rate")
+    parser.add_argument("--gamma", type=float, default=0.99, help="discount (horizon ~2 s at 50 Hz)")
     parser.add_argument("--seed", type=int, default=0, help="training and evaluation seed")
     parser.add_argument(
         "--log-std-init",
         type=float,
-        default=-1.0,
+        default=-1.5,
         help="initial log std of the Gaussian policy (SB3 default 0 explores so wildly with setpoint "
         "actions that most early episodes leave the arena)",
+    )
+    parser.add_argument(
+        "--policy-layers",
+        type=int,
+        nargs="*",
+        default=[],
+        help="hidden layer sizes of the policy network (default none: a linear policy on the normalized "
+        "observation; the critic is always 64x64)",
     )
     parser.add_argument("--save", default=None, help="optional path to save the trained policy (.zip)")
     args = parser.parse_args(argv)
