@@ -19,6 +19,7 @@ is the explicit exception, fed truth for fast policy training).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -191,7 +192,12 @@ class ClosedLoopSim:
         return TruthState(self.t_s, R_WB, p_WB, self.sim.velocity_W(), self.sim.angular_velocity_B())
 
     def estimate(self) -> StateEstimate | None:
-        """The estimator's latest state (propagated to the newest IMU sample), or None before init."""
+        """The estimator's latest state (propagated to the newest IMU sample), or None before init.
+
+        The ``ground-truth`` pass-through is fed the truth here, when asked, rather than at every IMU sample.
+        """
+        if self.config.estimator == "ground-truth":
+            self._feed_truth()
         return self.estimator.estimate()
 
     def health(self) -> HealthStatus:
@@ -239,8 +245,6 @@ class ClosedLoopSim:
     def _deliver_frames(self) -> None:
         while self._pending and self._pending[0][0] <= self.t_s + 1e-12:
             _, frame = self._pending.popleft()
-            if self.config.estimator == "ground-truth":
-                self._feed_truth()
             self._feed(self.estimator.feed_camera, frame)
             self.last_frame = frame
             self.frames_delivered += 1
@@ -284,10 +288,21 @@ class ClosedLoopSim:
         """
         dt = self.sim.timestep_s
         n = max(1, round(duration_s / dt))
-        for _ in range(n):
-            self._apply_wind(dt)
-            self.sim.step(thrusts_N, 1)
-            self._step_count += 1
+        done = 0
+        while done < n:
+            # Step the physics in one call up to the next sensor event (IMU sample, exposure, frame arrival);
+            # mj_forward between plain steps would only recompute what the next mj_step computes again.
+            chunk = min(
+                n - done,
+                self._imu_every - self._step_count % self._imu_every,
+                self._cam_every - self._step_count % self._cam_every,
+            )
+            if self._pending:
+                chunk = min(chunk, max(1, math.ceil((self._pending[0][0] - self.t_s) / dt - 1e-9)))
+            self._apply_wind(dt * chunk)
+            self.sim.step(thrusts_N, chunk)
+            self._step_count += chunk
+            done += chunk
             if self._step_count % self._imu_every == 0:
                 sample = self.imu_model.measure(
                     self.t_s, self.sim.angular_velocity_B(), self.sim.specific_force_B()
@@ -297,12 +312,11 @@ class ClosedLoopSim:
                     nan3 = np.full(3, np.nan)
                     sample = ImuSample(sample.t_s, nan3, nan3, sample.saturated)
                 self.last_imu = sample
-                if self.config.estimator == "ground-truth":
-                    self._feed_truth()
                 self._feed(self.estimator.feed_imu, sample)
             if self._step_count % self._cam_every == 0:
                 self._capture(self.t_s)
-            self._deliver_frames()
+            if self._pending:
+                self._deliver_frames()
 
     def close(self) -> None:
         """Release the GL context."""
