@@ -201,18 +201,10 @@ class InertialInitializer:
 
     def excitation_m_s2(self) -> float:
         """Accelerometer standard deviation (m/s^2, RMS over axes) over the window; 0 without data."""
-        window = self._window_imu()
-        if len(window) < 2:
-            return 0.0
-        acc = np.array([s.accel_B_m_s2 for s in window])
-        return float(np.sqrt(np.mean(np.sum((acc - acc.mean(axis=0)) ** 2, axis=1))))
+        return _spread([s.accel_B_m_s2 for s in self._window_imu()])
 
     def _gyro_std_rad_s(self) -> float:
-        window = self._window_imu()
-        if len(window) < 2:
-            return 0.0
-        gyr = np.array([s.gyro_B_rad_s for s in window])
-        return float(np.sqrt(np.mean(np.sum((gyr - gyr.mean(axis=0)) ** 2, axis=1))))
+        return _spread([s.gyro_B_rad_s for s in self._window_imu()])
 
     def _disparity(self) -> float:
         """Mean normalized displacement of features common to the first and last frame of the window."""
@@ -432,3 +424,10 @@ class InertialInitializer:
             gravity_norm_m_s2=g_norm,
         )
 
+
+def _spread(vectors: list[np.ndarray]) -> float:
+    """Standard deviation of 3-vectors about their mean, RMS over the axes; 0 for fewer than two."""
+    if len(vectors) < 2:
+        return 0.0
+    v = np.asarray(vectors)
+    return float(np.sqrt(np.mean(np.sum((v - v.mean(axis=0)) ** 2, axis=1))))
