@@ -111,14 +111,13 @@ class ClosedLoopSim:
     Args:
         config: The rig.
         seed: Seeds every random component (IMU noise and biases, pixel noise, drops, wind).
-        max_duration_s: Longest run this instance will simulate (sizes the camera schedule).
 
     Raises:
         ValueError: Unknown scene, estimator, front end or preset; IMU/camera periods that are not whole
             multiples of the physics timestep.
     """
 
-    def __init__(self, config: RigConfig, seed: int = 0, max_duration_s: float = 600.0) -> None:
+    def __init__(self, config: RigConfig, seed: int = 0) -> None:
         """Build the simulation, sensors, renderer and estimator."""
         if config.frontend not in ("klt", "sim"):
             raise ValueError(f"unknown front end {config.frontend!r}; allowed: 'klt', 'sim'")

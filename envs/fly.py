@@ -248,7 +248,7 @@ def fly(
     if not (total_s > 0.0 and np.isfinite(total_s)):
         raise ValueError(f"seconds must be positive and finite, got {seconds}")
     rig = replace(sc.rig, estimator=estimator, frontend=frontend)
-    loop = ClosedLoopSim(rig, seed=seed, max_duration_s=total_s)
+    loop = ClosedLoopSim(rig, seed=seed)
     controller = SE3Controller(vehicle_params_from_model(loop.sim.model), gains or SE3Gains())
     log = FlightLog()
     ctrl_dt = 1.0 / CONTROL_RATE_HZ
