@@ -233,6 +233,41 @@ def regress(
         raise typer.Exit(1)
 
 
+@app.command()
+def failures(
+    out: Path = typer.Option(Path("failures_out"), "--out", help="Folder for the plots and report.json."),
+    name: list[str] = typer.Option(None, "--name", help="Failure scenario(s) (default: all fail-*)."),
+    seed: int = typer.Option(0, help="Seed of every stream."),
+    severity: float = typer.Option(1.0, help="Severity knob (0 nominal, 1 default, larger worse)."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """Run each failure mode and its fix: error-vs-time plot, what the monitor said and when, the fix."""
+    from rich.table import Table
+    from viotb.envs.failures import FAILURES, failure_report
+
+    names = list(name) if name else list(FAILURES)
+    unknown = [n for n in names if n not in FAILURES]
+    if unknown:
+        _fail(f"unknown failure scenario(s) {unknown}; known: {sorted(FAILURES)}")
+    try:
+        reports = [failure_report(n, out, seed=seed, severity=severity) for n in names]
+    except ValueError as exc:
+        _fail(str(exc))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "report.json").write_text(json.dumps(reports, indent=2, default=float) + "\n")
+    if as_json:
+        sys.stdout.write(json.dumps(reports, default=float) + "\n")
+        return
+    table = Table(title=f"failure modes (seed {seed}, severity {severity}); plots in {out}")
+    for col in ("scenario", "monitor said (first time)", "fix", "ATE failing", "ATE fixed", "fixed run said"):
+        table.add_column(col)
+    for r in reports:
+        said = ", ".join(f"{c['name']} ({c['t_s_first']:.2f} s)" for c in r["conditions"]) or "nothing"
+        ate = (f"{r['failing']['ate_m']:.3f} m", f"{r['fixed']['ate_m']:.3f} m")
+        table.add_row(r["name"], said, r["fix"], *ate, ", ".join(r["fixed_conditions"]) or "nothing")
+    Console().print(table)
+
+
 def main() -> None:
     """Entry point of the ``viotb`` console script."""
     app()

@@ -30,10 +30,15 @@ from viotb.envs.scenarios import Scenario, get_scenario, register
 from viotb.envs.trajectories import TRAJECTORY_FACTORIES, MotionParams, Trajectory
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.health import HealthMonitor, HealthParams, MonitoredRun, monitor_run
+from viotb.vio.initialization import InitResult
 from viotb.vio.lie import exp_so3, rotmat_to_quat_wxyz
 from viotb.vio.metrics import align_umeyama, scale_error_pct
 from viotb.vio.msckf import MsckfEstimator, MsckfParams
 from viotb.vio.types import CameraFrame, ImuSeries, TrajectoryArrays
+
+NO_EXCITATION_START_S = 3.5
+"""Stream time (s) at which ``fail-no-excitation`` starts the estimator: the line's cruise begins (the
+ramp runs from the end of the 1.5 s still start to 3.5 s)."""
 
 
 @dataclass(frozen=True)
@@ -57,6 +62,12 @@ class StreamConfig:
         landmark_count: Landmarks in the scene.
         blackout_s: Camera blackout interval (start, end) in seconds of stream time, or None.
         pixel_sigma_px: Pixel noise (px) of the projected features.
+        start_in_flight_s: When set, the estimator is not initialized at rest: at this stream time (s) it is
+            started in flight (as by a dynamic initializer) from the true pose, the true biases and the true
+            velocity times ``1 + initial_scale_error`` (with a monocular camera the metric scale lives in the
+            velocity), with an honest prior: velocity sigma ``initial_scale_error x speed`` (at least
+            2 cm/s) per axis. The monitor still sees the IMU from the first sample.
+        initial_scale_error: Relative scale (speed) error of that in-flight start.
     """
 
     motion: str = "hover"
@@ -74,11 +85,17 @@ class StreamConfig:
     landmark_count: int = 1500
     blackout_s: tuple[float, float] | None = None
     pixel_sigma_px: float = 0.5
+    start_in_flight_s: float | None = None
+    initial_scale_error: float = 0.0
 
 
 @dataclass
 class Stream:
-    """A synthesized run: IMU readings, frames, truth, and the calibration the estimator is given."""
+    """A synthesized run: IMU readings, frames, truth, and the calibration the estimator is given.
+
+    ``external_init`` (an :class:`~viotb.vio.initialization.InitResult`) is the in-flight start of
+    ``StreamConfig.start_in_flight_s``, or None for the estimator's own initialization at rest.
+    """
 
     imu: ImuSeries
     frames: list[CameraFrame]
@@ -88,6 +105,7 @@ class Stream:
     noise: object
     time_offset_s: float
     pixel_sigma_px: float = 0.5
+    external_init: InitResult | None = None
 
 
 @dataclass(frozen=True)
@@ -130,7 +148,9 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
     truth = traj.sample_many(t_imu)
     f_B = truth.specific_force_B * (1.0 + cfg.accel_scale_error)
     omega = truth.omega_B + cfg.extra_gyro_bias_rad_s
-    imu, _, _ = ImuModel(params, np.random.default_rng(imu_seq)).measure_series_with_biases(t_imu, omega, f_B)
+    imu, bias_g, bias_a = ImuModel(params, np.random.default_rng(imu_seq)).measure_series_with_biases(
+        t_imu, omega, f_B
+    )
 
     model = load_model("quadrotor", cfg.scene)
     calib = camera_calibration(model, ONBOARD_CAMERA, VEHICLE_BODIES["quadrotor"], 320, 240,
@@ -153,10 +173,31 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
     given = replace(calib, R_BC=calib.R_BC @ R_err, time_offset_s=cfg.assumed_time_offset_s)
     gt = TrajectoryArrays(t_imu, truth.p_WB, np.array([rotmat_to_quat_wxyz(R) for R in truth.R_WB]),
                           truth.v_WB)
-    return Stream(imu, frames, gt, calib, given, params.noise, cfg.time_offset_s, cfg.pixel_sigma_px)
+    init = None
+    if cfg.start_in_flight_s is not None:
+        k = int(np.searchsorted(t_imu, cfg.start_in_flight_s))
+        if k >= len(t_imu) - 1:
+            raise ValueError(f"StreamConfig.start_in_flight_s={cfg.start_in_flight_s} is beyond the stream "
+                             f"({total_s} s)")
+        sigma_v = max(abs(cfg.initial_scale_error) * float(np.linalg.norm(truth.v_WB[k])), 0.02)
+        init = InitResult(
+            t_s=float(t_imu[k]), R_WB=truth.R_WB[k], p_WB=truth.p_WB[k],
+            v_WB=truth.v_WB[k] * (1.0 + cfg.initial_scale_error),
+            gyro_bias_rad_s=bias_g[k] + cfg.extra_gyro_bias_rad_s, accel_bias_m_s2=bias_a[k],
+            method="in-flight",
+            cov_diag=np.repeat([1e-4**2, 1e-3**2, sigma_v**2, 1e-3**2, 0.02**2], 3),
+        )
+    return Stream(imu, frames, gt, calib, given, params.noise, cfg.time_offset_s, cfg.pixel_sigma_px, init)
 
 
 # ----------------------------------------------------------------------------------------------- specs
+
+
+ONLINE_CALIBRATION = {
+    "estimate_time_offset": True, "time_offset_sigma_s": 0.02, "estimate_extrinsics": True,
+    "extrinsic_sigma_rad": 0.05,
+}
+"""``MsckfParams`` fields of the time-sync / extrinsic fix: both calibrations online with wide priors."""
 
 
 @dataclass(frozen=True)
@@ -168,12 +209,15 @@ class FailureSpec:
         condition: Monitor condition that should name it (or "" when none is expected).
         description: Symptom / cause, one line.
         fix: The fix of the catalog that :func:`failure_report` applies.
+        diagnosis: Condition the monitor should name on the *fixed* run ("" when none): with both online
+            calibrations on, the calibration that moves tells a time offset from an extrinsic error.
     """
 
     name: str
     condition: str
     description: str
     fix: str
+    diagnosis: str = ""
 
     def config(self, severity: float = 1.0) -> StreamConfig:
         """The failing run at ``severity`` (0 = nominal, 1 = default, larger = worse)."""
@@ -184,7 +228,8 @@ class FailureSpec:
         if n == "fail-bad-init":
             return StreamConfig(extra_gyro_bias_rad_s=0.3 * s, accel_scale_error=0.05 * s)
         if n == "fail-no-excitation":
-            return StreamConfig(motion="line", seconds=8.0, speed_scale=1.0 + 0.5 * s)
+            return StreamConfig(motion="line", seconds=8.0, speed_scale=1.0 + 0.5 * s,
+                                start_in_flight_s=NO_EXCITATION_START_S, initial_scale_error=0.1 * s)
         if n == "fail-time-offset":
             return StreamConfig(motion="figure8", seconds=12.0, time_offset_s=0.01 * s, speed_scale=1.0 + s)
         if n == "fail-extrinsic":
@@ -208,11 +253,9 @@ class FailureSpec:
         if n == "fail-bad-init":
             cfg = replace(cfg, extra_gyro_bias_rad_s=0.0, accel_scale_error=0.0)
         elif n == "fail-no-excitation":
-            cfg = replace(cfg, motion="hover", speed_scale=1.0)
-        elif n == "fail-time-offset":
-            prm = replace(prm, estimate_time_offset=True, time_offset_sigma_s=0.02)
-        elif n == "fail-extrinsic":
-            prm = replace(prm, estimate_extrinsics=True, extrinsic_sigma_rad=0.05)
+            cfg = replace(cfg, motion="figure8", speed_scale=1.0)
+        elif n in ("fail-time-offset", "fail-extrinsic"):
+            prm = replace(prm, **ONLINE_CALIBRATION)
         elif n == "fail-gyro-saturation":
             cfg = replace(cfg, imu_preset="bmi088")
         elif n == "fail-feature-poverty":
@@ -227,13 +270,15 @@ FAILURES: dict[str, FailureSpec] = {
                     "turn-on gyro bias 0.3 rad/s and 5 % accelerometer scale: wrong gravity / bias at init",
                     "calibrated IMU (re-initialize after calibration)"),
         FailureSpec("fail-no-excitation", "insufficient_excitation",
-                    "constant-velocity line: scale weakly observable",
-                    "excitation manoeuvre (hover Lissajous)"),
+                    "started in flight with a 10 % scale error, then a constant-velocity line: scale "
+                    "unobservable, the error stays and the position error grows with distance",
+                    "excitation manoeuvre (the same start on a figure-8)"),
         FailureSpec("fail-time-offset", "time_sync_or_extrinsic_suspected",
                     "10 ms camera-IMU clock offset on a fast figure-8: error grows with speed",
-                    "online time-offset calibration (MsckfParams.estimate_time_offset)"),
+                    "online time-offset and extrinsic calibration", "time_offset_miscalibrated"),
         FailureSpec("fail-extrinsic", "time_sync_or_extrinsic_suspected",
-                    "2 deg camera-IMU rotation error on a fast figure-8", "online extrinsic calibration"),
+                    "2 deg camera-IMU rotation error on a fast figure-8",
+                    "online time-offset and extrinsic calibration", "extrinsic_miscalibrated"),
         FailureSpec("fail-feature-poverty", "feature_poverty",
                     "30 landmarks and a 2 s blackout (blank wall / dark room)",
                     "coast on the IMU (propagate only)"),
@@ -334,7 +379,11 @@ def run_stream(
     """
     prm = params if params is not None else MsckfParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
     est = MsckfEstimator(stream.calib_given, stream.noise, replace(prm, frontend="sim"))
-    run = monitor_run(est, stream.imu, stream.frames, stream.time_offset_s, HealthMonitor(health))
+    monitor = HealthMonitor(health)
+    imu, frames = stream.imu, stream.frames
+    if stream.external_init is not None:
+        imu, frames = _start_in_flight(est, monitor, stream)
+    run = monitor_run(est, imu, frames, stream.time_offset_s, monitor)
     ok = [i for i, e in enumerate(run.estimates) if e is not None and np.all(np.isfinite(e.p_WB))]
     out = RunResult(np.zeros(0), np.zeros(0), run, stream)
     m: dict = {"init_time_s": None, "ate_m": float("nan"), "final_err_m": float("nan"),
@@ -357,7 +406,24 @@ def run_stream(
     return out
 
 
-def along_track_velocity_stats(result: RunResult, t_from_s: float, t_to_s: float) -> tuple[float, float]:
+def _start_in_flight(
+    est: MsckfEstimator, monitor: HealthMonitor, stream: Stream
+) -> tuple[ImuSeries, list[CameraFrame]]:
+    """Show the monitor the IMU up to ``stream.external_init``, start ``est`` there; return the rest."""
+    init = stream.external_init
+    k = int(np.searchsorted(stream.imu.t_s, init.t_s, side="right"))
+    for i in range(k):
+        monitor.observe_imu(stream.imu.sample(i))
+    est.initialize(init)
+    imu = stream.imu
+    rest = ImuSeries(imu.t_s[k:], imu.gyro_B_rad_s[k:], imu.accel_B_m_s2[k:], imu.saturated[k:])
+    frames = [f for f in stream.frames if f.t_s + stream.time_offset_s > init.t_s]
+    return rest, frames
+
+
+def along_track_velocity_stats(
+    result: RunResult, t_from_s: float, t_to_s: float, relative: bool = False
+) -> tuple[float, float]:
     """Error and filter sigma of the velocity along the direction of travel over a time window.
 
     With a monocular camera the metric scale lives in the velocity (the images fix only its direction), so
@@ -369,9 +435,11 @@ def along_track_velocity_stats(result: RunResult, t_from_s: float, t_to_s: float
         result: A :func:`run_stream` result.
         t_from_s: Window start (s, IMU clock), inclusive.
         t_to_s: Window end (s), exclusive.
+        relative: Divide each error and sigma by the true speed: the scale error (fraction).
 
     Returns:
-        ``(rms_error_m_s, mean_sigma_m_s)`` over the estimates in the window moving faster than 0.2 m/s.
+        ``(rms_error, mean_sigma)`` (m/s, or fractions when ``relative``) over the estimates in the window
+        moving faster than 0.2 m/s.
 
     Raises:
         ValueError: No such estimate in the window.
@@ -386,8 +454,9 @@ def along_track_velocity_stats(result: RunResult, t_from_s: float, t_to_s: float
         if speed < 0.2:
             continue
         d = v / speed
-        err.append(float(d @ est.v_WB) - speed)
-        sig.append(float(np.sqrt(max(d @ est.cov[6:9, 6:9] @ d, 0.0))))
+        unit = speed if relative else 1.0
+        err.append((float(d @ est.v_WB) - speed) / unit)
+        sig.append(float(np.sqrt(max(d @ est.cov[6:9, 6:9] @ d, 0.0))) / unit)
     if not err:
         raise ValueError(f"along_track_velocity_stats: no moving estimate in [{t_from_s}, {t_to_s}) s")
     return float(np.sqrt(np.mean(np.square(err)))), float(np.mean(sig))
@@ -449,7 +518,8 @@ def failure_report(name: str, out_dir: Path | str, seed: int = 0, severity: floa
 
     Returns:
         ``{"name", "severity", "seed", "expected_condition", "conditions": [{name, t_s_first, evidence}],
-        "detected", "detection_time_s", "fix", "failing": metrics, "fixed": metrics, "plot"}``.
+        "detected", "detection_time_s", "fix", "failing": metrics, "fixed": metrics, "fixed_conditions",
+        "diagnosis", "diagnosis_time_s", "plot"}`` (``diagnosis``: the condition the fixed run should name).
     """
     if name not in FAILURES:
         raise ValueError(f"unknown failure {name!r}; known: {sorted(FAILURES)}")
@@ -474,5 +544,7 @@ def failure_report(name: str, out_dir: Path | str, seed: int = 0, severity: floa
         "failing": bad.metrics,
         "fixed": good.metrics,
         "fixed_conditions": [c.name for c in good.run.monitor.report()],
+        "diagnosis": spec.diagnosis or None,
+        "diagnosis_time_s": good.run.monitor.first_time(spec.diagnosis) if spec.diagnosis else None,
         "plot": str(plot),
     }

@@ -2,7 +2,11 @@
 
 Short set (default): in-memory open-loop streams of :mod:`viotb.envs.failures` (hover, circle, line; no
 rendering) evaluated with the MSCKF and the simulated front end, plus one closed-loop ``fly-hover`` with the
-simulated front end. ``full`` adds a fast circle and the 60 s long loop.
+simulated front end. ``full`` adds a fast circle and the 60 s long loop (simulated features), and the image
+path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``) and a 20 s
+closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``).
+
+The baseline holds the full set; a short run is compared on the short set's cases only.
 
 Metrics per case: ``ate_m`` (4-DOF aligned RMS), ``final_err_m``, ``drift_pct`` (final error / path length),
 ``scale_error_pct`` (absolute), ``nees_pos`` (mean position NEES), and ``timing_ratio`` (ms per frame divided
@@ -47,6 +51,18 @@ FULL_CASES = {
     "circle-fast-sim": StreamConfig(motion="circle", seconds=10.0, speed_scale=1.5, landmark_count=600),
     "long-loop-sim": StreamConfig(motion="long-loop", seconds=60.0, landmark_count=600),
 }
+IMAGE_CASES = ("figure8-klt", "fly-hover-klt")
+"""Full-set cases on rendered images."""
+
+
+def case_names(full: bool = False, fly_case: bool = True) -> tuple[str, ...]:
+    """Names of the cases :func:`run_suite` runs for these options."""
+    names = list(SHORT_CASES) + (list(FULL_CASES) if full else [])
+    if fly_case:
+        names.append("fly-hover-sim")
+    if full:
+        names += IMAGE_CASES
+    return tuple(names)
 
 
 def reference_ms() -> float:
@@ -92,12 +108,33 @@ def _stream_case(cfg: StreamConfig, seed: int, params: MsckfParams, ref_ms: floa
     }
 
 
-def _fly_case(seed: int, ref_ms: float) -> dict:
+def _recording_case(seed: int, ref_ms: float) -> dict:
+    """``figure8`` rendered for 12 s, replayed through the MSCKF with the KLT front end."""
+    import tempfile  # noqa: PLC0415
+
+    from viotb.envs.evaluate import EvalOptions, evaluate_dataset  # noqa: PLC0415
+    from viotb.envs.record import record_scenario  # noqa: PLC0415
+
+    with tempfile.TemporaryDirectory(prefix="viotb-regress-") as tmp:
+        record_scenario("figure8", tmp, seed=seed, seconds=12.0)
+        m = evaluate_dataset(Path(tmp), Path(tmp) / "eval", EvalOptions(estimator="msckf", frontend="klt"))
+    nan = float("nan")
+    return {
+        "ate_m": m.get("ate_posyaw_m", nan),
+        "drift_pct": m.get("drift_pct", nan),
+        "scale_error_pct": abs(m.get("scale_error_pct", nan)),
+        "nees_pos": m.get("nees_pos_mean", nan),
+        "timing_ratio": m["ms_per_frame_median"] / ref_ms,
+        "diverged": bool(m["diverged"]),
+    }
+
+
+def _fly_case(seed: int, ref_ms: float, frontend: str = "sim", seconds: float = 15.0) -> dict:
     from viotb.envs.fly import fly  # noqa: PLC0415
 
     t0 = time.perf_counter()
     # 15 s: ground init, takeoff and the excitation manoeuvre the filter asks for leave ~4 s of hover.
-    m, log = fly("fly-hover", estimator="msckf", seconds=15.0, seed=seed, frontend="sim")
+    m, log = fly("fly-hover", estimator="msckf", seconds=seconds, seed=seed, frontend=frontend)
     ms = (time.perf_counter() - t0) * 1e3 / max(len(log.frame_t_s), 1)
     return {
         "ate_m": m["ate_posyaw_m"] if m["ate_posyaw_m"] is not None else float("nan"),
@@ -131,6 +168,9 @@ def run_suite(
     out = {name: _stream_case(cfg, seed, prm, ref) for name, cfg in cases.items()}
     if fly_case:
         out["fly-hover-sim"] = _fly_case(seed, ref)
+    if full and only is None:
+        out["figure8-klt"] = _recording_case(seed, ref)
+        out["fly-hover-klt"] = _fly_case(seed, ref, frontend="klt", seconds=20.0)
     return {"reference_ms": ref, "seed": seed, "cases": out}
 
 
@@ -149,8 +189,13 @@ def load_baseline(path: Path | str) -> dict:
     return data
 
 
-def compare(result: dict, baseline: dict) -> list[dict]:
+def compare(result: dict, baseline: dict, cases: tuple[str, ...] | None = None) -> list[dict]:
     """Rows ``{case, metric, value, baseline, limit, ok}`` for every metric present in both.
+
+    Args:
+        result: A :func:`run_suite` output.
+        baseline: A :func:`load_baseline` output.
+        cases: Compare only these baseline cases (None: all of them).
 
     A NaN value where the baseline is finite, a divergence the baseline did not have, and a missing case
     all fail.
@@ -158,6 +203,8 @@ def compare(result: dict, baseline: dict) -> list[dict]:
     rows = []
     tol = baseline["tolerances"]
     for case, base in baseline["cases"].items():
+        if cases is not None and case not in cases:
+            continue
         cur = result["cases"].get(case)
         if cur is None:
             rows.append({"case": case, "metric": "(missing)", "value": None, "baseline": None, "limit": None,
@@ -201,9 +248,11 @@ def regress(
     Returns:
         ``(passed, rows, result)``.
     """
+    if update and not full:
+        raise ValueError("regress --update rewrites the whole baseline: run it with --full")
     result = run_suite(full=full, params=params)
     if update:
         write_baseline(baseline, result)
         return True, [], result
-    rows = compare(result, load_baseline(baseline))
+    rows = compare(result, load_baseline(baseline), case_names(full))
     return all(r["ok"] for r in rows), rows, result

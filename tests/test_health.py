@@ -14,15 +14,66 @@ def _feed_imu(mon: HealthMonitor, seconds: float, rng, accel_std: float, gyro: f
         mon.observe_imu(ImuSample(t, np.array([gyro, 0.0, 0.0]), acc, saturated=abs(t - sat_at) < 1e-9))
 
 
-def test_excitation_flag_raised_when_still_and_not_when_excited():
+def _fly(mon: HealthMonitor, seconds: float, rng, R_WB: np.ndarray, accel_W, speed_m_s: float,
+         noise_m_s2: float = 0.01) -> None:
+    """Feed 200 Hz IMU samples of a body with a fixed attitude and a world acceleration ``accel_W(t)``.
+
+    After every 10th sample the monitor also gets an estimate (true attitude, speed ``speed_m_s`` along x).
+    """
+    for k in range(int(seconds * 200)):
+        t = k / 200.0
+        f_B = R_WB.T @ (np.asarray(accel_W(t)) + [0.0, 0.0, GRAVITY_M_S2]) + rng.normal(0.0, noise_m_s2, 3)
+        mon.observe_imu(ImuSample(t, np.zeros(3), f_B))
+        if k % 10 == 0:
+            est = StateEstimate(t, R_WB, np.zeros(3), np.array([speed_m_s, 0.0, 0.0]), cov=np.eye(15) * 1e-4)
+            mon.observe_frame(t, HealthStatus(t, True, 100), est)
+
+
+def test_excitation_flag_needs_translation_without_world_acceleration():
     rng = np.random.default_rng(0)
-    still = HealthMonitor()
-    _feed_imu(still, 5.0, rng, accel_std=0.01, gyro=0.0)
-    # Window 2 s, hold 1 s: the first possible time is 3 s (to one IMU period).
-    assert abs(still.first_time("insufficient_excitation") - 3.0) < 0.01
-    moving = HealthMonitor()
-    _feed_imu(moving, 5.0, rng, accel_std=0.5, gyro=0.0)
-    assert moving.report() == []
+    level = np.eye(3)
+    cruise = HealthMonitor()
+    _fly(cruise, 5.0, rng, level, lambda t: [0.0, 0.0, 0.0], speed_m_s=1.0)
+    # The window (2 s) fills from the first estimate (t = 0), then the 0.5 s hold: 2.5 s (to one sample).
+    (c,) = cruise.report()
+    assert c.name == "insufficient_excitation" and abs(c.t_s_first - 2.5) < 0.01, c
+    # At rest there is no scale to lose; an oscillating acceleration (0.5 m/s^2) excites.
+    for speed, acc in ((0.0, lambda t: [0.0, 0.0, 0.0]), (1.0, lambda t: [0.5 * np.sin(2.0 * t), 0.0, 0.0])):
+        quiet = HealthMonitor()
+        _fly(quiet, 5.0, rng, level, acc, speed_m_s=speed)
+        assert quiet.report() == [], speed
+
+
+def test_excitation_is_measured_in_the_world_frame():
+    """A tilted body accelerating at a constant 1 m/s^2 sideways is excited.
+
+    Its body-frame specific force is constant (per-axis std: noise only); rotated by the estimated attitude
+    it is 1 m/s^2 of world acceleration. Given an attitude that lines the same readings up with gravity,
+    they read as an unexcited cruise.
+    """
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(0.1), -np.sin(0.1)], [0.0, np.sin(0.1), np.cos(0.1)]])
+    mon = HealthMonitor()
+    _fly(mon, 5.0, np.random.default_rng(1), tilt, lambda t: [0.0, 1.0, 0.0], speed_m_s=1.0)
+    assert mon.report() == []
+    fooled = HealthMonitor()
+    rng = np.random.default_rng(1)
+    for k in range(1000):
+        t = k / 200.0
+        f_B = tilt.T @ np.array([0.0, 1.0, GRAVITY_M_S2])
+        fooled.observe_imu(ImuSample(t, np.zeros(3), f_B + rng.normal(0.0, 0.01, 3)))
+        if k % 10 == 0:
+            R_aligned = _rotation_taking(f_B, np.array([0.0, 0.0, 1.0]))
+            est = StateEstimate(t, R_aligned, np.zeros(3), np.array([1.0, 0.0, 0.0]), cov=np.eye(15) * 1e-4)
+            fooled.observe_frame(t, HealthStatus(t, True, 100), est)
+    assert fooled.first_time("insufficient_excitation") is not None
+
+
+def _rotation_taking(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation R with R a / |a| = b / |b| (Rodrigues)."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(a @ b)
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)
 
 
 def test_saturation_names_count_and_time():

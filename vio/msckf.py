@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.frontend import FeatureDatabase, FrontEnd, KltParams, KltTracker, SimFeatureTracker, Tracks
+from viotb.vio.lie import log_so3
 from viotb.vio.propagator import Integration, Propagator
 from viotb.vio.state import (
     BA,
@@ -29,6 +30,7 @@ from viotb.vio.state import (
     IMU_BLOCK,
     POS,
     THETA,
+    TIME_OFFSET_BLOCK,
     VEL,
     ImuValues,
     State,
@@ -40,6 +42,7 @@ from viotb.vio.state import (
 from viotb.vio.triangulation import TriangulationParams, triangulate
 from viotb.vio.types import (
     GRAVITY_M_S2,
+    CalibrationDrift,
     CameraFrame,
     HealthStatus,
     ImuNoise,
@@ -397,7 +400,27 @@ class MsckfEstimator:
             chi2_rejections=stats.rejected, diverged=bool(self._diverged_reason),
             reason=self._diverged_reason,
             conditions=tuple(conds), nis_per_dof=stats.nis_per_dof, nis_per_dof_all=stats.nis_per_dof_all,
+            calibration=self._calibration_drift(),
         )
+
+    def _calibration_drift(self) -> CalibrationDrift | None:
+        """Estimated minus given extrinsic and time offset with their sigmas (None when none is estimated)."""
+        st = self.state
+        if st is None or not (st.has_block(EXTRINSIC_BLOCK) or st.has_block(TIME_OFFSET_BLOCK)):
+            return None
+        out = {}
+        if st.has_block(TIME_OFFSET_BLOCK):
+            i = st.block(TIME_OFFSET_BLOCK).offset
+            out["time_offset_s"] = st.time_offset_s - self.calib.time_offset_s
+            out["time_offset_sigma_s"] = float(np.sqrt(max(st.cov[i, i], 0.0)))
+        if st.has_block(EXTRINSIC_BLOCK):
+            sl = st.block(EXTRINSIC_BLOCK).indices
+            sigma = np.sqrt(np.maximum(np.diag(st.cov[sl, sl]), 0.0))
+            out["rotation_BC_rad"] = log_so3(self.calib.R_BC.T @ st.R_BC)
+            out["rotation_sigma_rad"] = sigma[:3]
+            out["translation_BC_m"] = st.p_BC - self.calib.p_BC
+            out["translation_sigma_m"] = sigma[3:]
+        return CalibrationDrift(**out)
 
     def _declare_divergence(self, reason: str) -> None:
         if not self._diverged_reason:

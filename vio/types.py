@@ -155,6 +155,29 @@ class StateEstimate:
 
 
 @dataclass(frozen=True)
+class CalibrationDrift:
+    """How far online calibration has moved the camera-IMU calibration from the one the estimator was given.
+
+    Each field is NaN where that quantity is not estimated.
+
+    Attributes:
+        time_offset_s: Estimated minus given time offset (s, ``t_imu = t_cam + offset``).
+        time_offset_sigma_s: Its standard deviation (s).
+        rotation_BC_rad: ``log(R_BC,given^T R_BC,est)`` (rad, camera frame), shape (3,).
+        rotation_sigma_rad: Standard deviations of its three components (rad), shape (3,).
+        translation_BC_m: Estimated minus given ``p_BC`` (m, body frame), shape (3,).
+        translation_sigma_m: Standard deviations (m), shape (3,).
+    """
+
+    time_offset_s: float = float("nan")
+    time_offset_sigma_s: float = float("nan")
+    rotation_BC_rad: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    rotation_sigma_rad: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    translation_BC_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    translation_sigma_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+
+
+@dataclass(frozen=True)
 class HealthStatus:
     """Estimator health after the latest camera frame.
 
@@ -170,6 +193,8 @@ class HealthStatus:
         nis_per_dof: Mean normalized innovation squared per degree of freedom of the features that passed
             the gate in the latest update (about 1 for a consistent filter; NaN when there was no update).
         nis_per_dof_all: The same over every triangulated candidate, rejected ones included (NaN if none).
+        calibration: Drift of the online camera-IMU calibration from the given one, or None when the
+            estimator calibrates nothing online.
     """
 
     t_s: float
@@ -182,6 +207,7 @@ class HealthStatus:
     conditions: tuple[str, ...] = ()
     nis_per_dof: float = float("nan")
     nis_per_dof_all: float = float("nan")
+    calibration: CalibrationDrift | None = None
 
 
 class EstimatorDiverged(RuntimeError):
