@@ -7,6 +7,7 @@ Every generator has ``sample(t_s) -> FlatOutput`` (time relative to its own star
 - :class:`Waypoints`: rest-to-rest minimum-jerk segments (Flash and Hogan, J. Neurosci. 1985: the quintic
   ``10 s^3 - 15 s^4 + 6 s^5``) between points, timed by an average speed or by given segment times.
 - :class:`Takeoff`: a minimum-jerk climb from the ground to an altitude.
+- :class:`StraightLine`: a constant-speed line between smooth ramps (no acceleration while cruising).
 - :class:`FigureEight`: a lemniscate of Gerono, ``x = a sin(theta)``, ``y = b sin(2 theta)``, whose phase rate
   ramps up (and, for a finite number of laps, down) smoothly so it starts and ends at rest.
 - :class:`ExcitationManeuver`: small sinusoids in x, y, z and yaw under a ``sin^2`` window, to make the
@@ -223,6 +224,67 @@ def _phase_ramp(t_s: float, ramp_s: float) -> tuple[float, float, float, float]:
     return ramp_s * tau**4 * (2.5 - 3.0 * tau + tau * tau), s, ds / ramp_s, d2s / ramp_s**2
 
 
+def _phase_ramp_up_down(t_s: float, duration_s: float, ramp_s: float) -> tuple[float, float, float, float]:
+    """:func:`_phase_ramp` at the start, mirrored at the end.
+
+    The warped time runs from 0 to ``duration_s - ramp_s`` with zero rate (and derivatives) at both ends.
+    """
+    if t_s <= 0.5 * duration_s:
+        return _phase_ramp(t_s, ramp_s)
+    w, dw, d2w, d3w = _phase_ramp(duration_s - t_s, ramp_s)
+    return duration_s - ramp_s - w, dw, -d2w, d3w
+
+
+@dataclass(frozen=True)
+class StraightLine:
+    """A straight line flown at a constant speed between a smooth start and a smooth stop.
+
+    No acceleration while cruising: the lesson's "constant velocity", under which scale is unobservable.
+
+    ``p(t) = start + u * speed * w(t)`` with the warped time ``w`` of :func:`_phase_ramp_up_down`: its rate
+    ramps from 0 to 1 over ``ramp_s``, stays 1, and ramps back to 0, ending at rest ``length_m`` along ``u``.
+
+    Attributes:
+        start_W_m: Start (m), shape (3,).
+        direction_W: Direction (any length), shape (3,).
+        length_m: Distance to fly (m).
+        speed_m_s: Cruise speed (m/s).
+        ramp_s: Duration of each speed ramp (s).
+        yaw_rad: Constant heading (rad).
+    """
+
+    start_W_m: np.ndarray
+    direction_W: np.ndarray
+    length_m: float
+    speed_m_s: float = 0.8
+    ramp_s: float = 2.0
+    yaw_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        """Validate and normalise the direction."""
+        object.__setattr__(self, "start_W_m", _vector("StraightLine", "start_W_m", self.start_W_m))
+        d = _vector("StraightLine", "direction_W", self.direction_W)
+        if float(np.linalg.norm(d)) < 1e-9:
+            raise ValueError(f"StraightLine.direction_W must be non-zero, got {d.tolist()}")
+        object.__setattr__(self, "direction_W", d / np.linalg.norm(d))
+        _positive("StraightLine", "length_m", self.length_m)
+        _positive("StraightLine", "speed_m_s", self.speed_m_s)
+        _positive("StraightLine", "ramp_s", self.ramp_s)
+
+    @property
+    def duration_s(self) -> float:
+        """``length / speed + ramp_s`` (s)."""
+        return self.length_m / self.speed_m_s + self.ramp_s
+
+    def sample(self, t_s: float) -> FlatOutput:
+        """Flat output at ``t_s`` (s)."""
+        t = min(max(float(t_s), 0.0), self.duration_s)
+        w, dw, d2w, d3w = _phase_ramp_up_down(t, self.duration_s, self.ramp_s)
+        u = self.direction_W * self.speed_m_s
+        return FlatOutput(p_W=self.start_W_m + u * w, v_W=u * dw, a_W=u * d2w, j_W=u * d3w,
+                          yaw_rad=self.yaw_rad)
+
+
 @dataclass(frozen=True)
 class FigureEight:
     """Lemniscate of Gerono in a horizontal plane, flown from and back to its centre.
@@ -267,10 +329,9 @@ class FigureEight:
 
     def _warp(self, t_s: float) -> tuple[float, float, float, float]:
         """Warped time and its three derivatives, with the ramp-down mirrored at the end."""
-        if self.laps is None or t_s <= 0.5 * self.duration_s:
+        if self.laps is None:
             return _phase_ramp(t_s, self.ramp_s)
-        w, dw, d2w, d3w = _phase_ramp(self.duration_s - t_s, self.ramp_s)
-        return self.laps * self.period_s - w, dw, -d2w, d3w
+        return _phase_ramp_up_down(t_s, self.duration_s, self.ramp_s)
 
     def sample(self, t_s: float) -> FlatOutput:
         """Flat output at ``t_s`` (s), by the chain rule through the warped phase."""

@@ -129,6 +129,9 @@ def fly(
     seed: int = typer.Option(0, "--seed", help="Random seed."),
     frontend: str = typer.Option("klt", "--frontend", help="klt (rendered images) | sim (fast mode)."),
     out: Path | None = typer.Option(None, "--out", help="Write plots (PNG) and metrics.json here."),
+    calibrate: bool = typer.Option(
+        False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (MSCKF)."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Fly a closed-loop scenario with the estimator in the loop."""
@@ -138,7 +141,8 @@ def fly(
         _fail(f"--seconds must be positive, got {seconds}")
     try:
         with _progress(f"fly {scenario}", not as_json) as progress:
-            result, log = run_fly(scenario, estimator, seconds, seed, frontend, progress)
+            result, log = run_fly(scenario, estimator, seconds, seed, frontend, progress,
+                                  online_calibration=calibrate or None)
     except ValueError as exc:
         _fail(str(exc))
     if out is not None:

@@ -26,11 +26,13 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 from viotb.envs.camera_model import CameraModelParams
+from viotb.envs.faults import SensorFaults
 from viotb.envs.imu_model import ImuModel, imu_preset
 from viotb.envs.render import OffscreenRenderer, camera_calibration
 from viotb.envs.sim import Simulation
 from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
 from viotb.vio.factory import make_estimator
+from viotb.vio.msckf import MsckfParams
 from viotb.vio.types import CameraFrame, HealthStatus, ImuSample, StateEstimate
 
 
@@ -66,6 +68,10 @@ class RigConfig:
         render_images: Render the onboard camera even in ``sim`` mode (for image observations / recordings).
         imu_fault_at_s: From this time on (s) the IMU outputs NaN on every axis: a failed sensor, used to test
             how an estimator and the runner behave when the estimate becomes unusable; None = healthy.
+        faults: Calibration / IMU errors (:class:`~viotb.envs.faults.SensorFaults`): what the estimator is
+            told and fed, not the truth.
+        online_calibration: Estimate the time offset and the extrinsics online (MSCKF,
+            :meth:`~viotb.vio.msckf.MsckfParams.with_online_calibration`).
     """
 
     scene: str = "textured_room"
@@ -79,6 +85,8 @@ class RigConfig:
     sim_pixel_sigma_px: float = 0.5
     render_images: bool = False
     imu_fault_at_s: float | None = None
+    faults: SensorFaults = field(default_factory=SensorFaults)
+    online_calibration: bool = False
 
 
 @dataclass(frozen=True)
@@ -134,8 +142,11 @@ class ClosedLoopSim:
         self.calib = camera_calibration(
             self.sim.model, ONBOARD_CAMERA, QUAD_BODY, cam.width, cam.height, cam.time_offset_s, cam.rate_hz
         )
+        given = config.faults.told_calibration(self.calib)
+        self.calib_given = given  # what the estimator is told; self.calib is the truth
+        params = MsckfParams().with_online_calibration() if config.online_calibration else None
         self.estimator = make_estimator(
-            config.estimator, self.calib, imu_params.noise, frontend=config.frontend
+            config.estimator, given, imu_params.noise, frontend=config.frontend, params=params
         )
         need_images = config.frontend == "klt" or config.render_images
         self.renderer = (
@@ -303,9 +314,10 @@ class ClosedLoopSim:
             self._step_count += chunk
             done += chunk
             if self._step_count % self._imu_every == 0:
-                sample = self.imu_model.measure(
-                    self.t_s, self.sim.angular_velocity_B(), self.sim.specific_force_B()
+                omega_B, f_B = self.config.faults.imu_input(
+                    self.sim.angular_velocity_B(), self.sim.specific_force_B()
                 )
+                sample = self.imu_model.measure(self.t_s, omega_B, f_B)
                 fault = self.config.imu_fault_at_s
                 if fault is not None and self.t_s >= fault:
                     nan3 = np.full(3, np.nan)

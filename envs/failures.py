@@ -25,13 +25,14 @@ from pathlib import Path
 
 import numpy as np
 from viotb.envs.camera_model import CameraModelParams
+from viotb.envs.faults import SensorFaults
 from viotb.envs.imu_model import ImuModel, imu_preset
-from viotb.envs.scenarios import Scenario, get_scenario, register
+from viotb.envs.scenarios import Scenario, is_registered, register
 from viotb.envs.trajectories import TRAJECTORY_FACTORIES, MotionParams, Trajectory
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.health import HealthMonitor, HealthParams, MonitoredRun, monitor_run
 from viotb.vio.initialization import InitResult
-from viotb.vio.lie import exp_so3, rotmat_to_quat_wxyz
+from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.metrics import align_umeyama, scale_error_pct
 from viotb.vio.msckf import MsckfEstimator, MsckfParams
 from viotb.vio.types import CameraFrame, ImuSeries, TrajectoryArrays
@@ -54,11 +55,7 @@ class StreamConfig:
         still_s: Seconds at rest before the motion (for static initialization).
         camera_rate_hz: Frame rate (Hz).
         time_offset_s: True clock offset, ``t_imu = t_cam + offset`` (s).
-        assumed_time_offset_s: Offset (s) given to the estimator's calibration.
-        extrinsic_error_rad: Rotation error (rad, about the camera's optical axis and x) of the ``R_BC`` given
-            to the estimator.
-        extra_gyro_bias_rad_s: Constant gyro bias (rad/s, all axes) added to the readings.
-        accel_scale_error: Accelerometer scale-factor error (fraction) added to the readings.
+        faults: Calibration / IMU errors (:class:`~viotb.envs.faults.SensorFaults`).
         landmark_count: Landmarks in the scene.
         blackout_s: Camera blackout interval (start, end) in seconds of stream time, or None.
         pixel_sigma_px: Pixel noise (px) of the projected features.
@@ -78,10 +75,7 @@ class StreamConfig:
     still_s: float = 1.5
     camera_rate_hz: float = 20.0
     time_offset_s: float = 0.0
-    assumed_time_offset_s: float = 0.0
-    extrinsic_error_rad: float = 0.0
-    extra_gyro_bias_rad_s: float = 0.0
-    accel_scale_error: float = 0.0
+    faults: SensorFaults = field(default_factory=SensorFaults)
     landmark_count: int = 1500
     blackout_s: tuple[float, float] | None = None
     pixel_sigma_px: float = 0.5
@@ -146,8 +140,7 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
     params = imu_preset(cfg.imu_preset)
     t_imu = np.arange(int(np.floor(total_s * params.rate_hz + 1e-9)) + 1) / params.rate_hz
     truth = traj.sample_many(t_imu)
-    f_B = truth.specific_force_B * (1.0 + cfg.accel_scale_error)
-    omega = truth.omega_B + cfg.extra_gyro_bias_rad_s
+    omega, f_B = cfg.faults.imu_input(truth.omega_B, truth.specific_force_B)
     imu, bias_g, bias_a = ImuModel(params, np.random.default_rng(imu_seq)).measure_series_with_biases(
         t_imu, omega, f_B
     )
@@ -169,8 +162,7 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
             rng, cfg.pixel_sigma_px,
         )
         frames.append(CameraFrame(t_s=float(t - cfg.time_offset_s), features=obs))
-    R_err = exp_so3(np.array([cfg.extrinsic_error_rad, 0.0, cfg.extrinsic_error_rad]) / np.sqrt(2.0))
-    given = replace(calib, R_BC=calib.R_BC @ R_err, time_offset_s=cfg.assumed_time_offset_s)
+    given = cfg.faults.told_calibration(calib)
     gt = TrajectoryArrays(t_imu, truth.p_WB, np.array([rotmat_to_quat_wxyz(R) for R in truth.R_WB]),
                           truth.v_WB)
     init = None
@@ -183,7 +175,7 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
         init = InitResult(
             t_s=float(t_imu[k]), R_WB=truth.R_WB[k], p_WB=truth.p_WB[k],
             v_WB=truth.v_WB[k] * (1.0 + cfg.initial_scale_error),
-            gyro_bias_rad_s=bias_g[k] + cfg.extra_gyro_bias_rad_s, accel_bias_m_s2=bias_a[k],
+            gyro_bias_rad_s=bias_g[k] + cfg.faults.extra_gyro_bias_rad_s, accel_bias_m_s2=bias_a[k],
             method="in-flight",
             cov_diag=np.repeat([1e-4**2, 1e-3**2, sigma_v**2, 1e-3**2, 0.02**2], 3),
         )
@@ -191,13 +183,6 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
 
 
 # ----------------------------------------------------------------------------------------------- specs
-
-
-ONLINE_CALIBRATION = {
-    "estimate_time_offset": True, "time_offset_sigma_s": 0.02, "estimate_extrinsics": True,
-    "extrinsic_sigma_rad": 0.05,
-}
-"""``MsckfParams`` fields of the time-sync / extrinsic fix: both calibrations online with wide priors."""
 
 
 @dataclass(frozen=True)
@@ -226,14 +211,18 @@ class FailureSpec:
             raise ValueError(f"severity must be finite and >= 0, got {severity}")
         n = self.name
         if n == "fail-bad-init":
-            return StreamConfig(extra_gyro_bias_rad_s=0.3 * s, accel_scale_error=0.05 * s)
+            return StreamConfig(
+                faults=SensorFaults(extra_gyro_bias_rad_s=0.3 * s, accel_scale_error=0.05 * s)
+            )
         if n == "fail-no-excitation":
             return StreamConfig(motion="line", seconds=8.0, speed_scale=1.0 + 0.5 * s,
                                 start_in_flight_s=NO_EXCITATION_START_S, initial_scale_error=0.1 * s)
         if n == "fail-time-offset":
-            return StreamConfig(motion="figure8", seconds=12.0, time_offset_s=0.01 * s, speed_scale=1.0 + s)
+            return StreamConfig(motion="figure8", seconds=12.0, time_offset_s=0.01 * s, speed_scale=1.0 + s,
+                                faults=SensorFaults(assumed_time_offset_s=0.0))
         if n == "fail-extrinsic":
-            return StreamConfig(motion="figure8", seconds=12.0, extrinsic_error_rad=np.deg2rad(2.0) * s,
+            return StreamConfig(motion="figure8", seconds=12.0,
+                                faults=SensorFaults(extrinsic_error_rad=float(np.deg2rad(2.0)) * s),
                                 speed_scale=1.0 + s)
         if n == "fail-feature-poverty":
             return StreamConfig(motion="hover", landmark_count=max(int(1500 * (1.0 - 0.98 * min(s, 1.0))), 8),
@@ -251,11 +240,11 @@ class FailureSpec:
         prm = MsckfParams(frontend="sim", pixel_sigma_px=cfg.pixel_sigma_px)
         n = self.name
         if n == "fail-bad-init":
-            cfg = replace(cfg, extra_gyro_bias_rad_s=0.0, accel_scale_error=0.0)
+            cfg = replace(cfg, faults=SensorFaults())
         elif n == "fail-no-excitation":
             cfg = replace(cfg, motion="figure8", speed_scale=1.0)
         elif n in ("fail-time-offset", "fail-extrinsic"):
-            prm = replace(prm, **ONLINE_CALIBRATION)
+            prm = prm.with_online_calibration()
         elif n == "fail-gyro-saturation":
             cfg = replace(cfg, imu_preset="bmi088")
         elif n == "fail-feature-poverty":
@@ -296,19 +285,16 @@ FAILURES: dict[str, FailureSpec] = {
 def _register_record_scenarios() -> None:
     """Register each failure (default severity) as an open-loop ``record`` scenario."""
     for spec in FAILURES.values():
-        try:
-            get_scenario(spec.name)
+        if is_registered(spec.name):
             continue
-        except ValueError:
-            pass
         cfg = spec.config(1.0)
         cam = CameraModelParams(rate_hz=cfg.camera_rate_hz, pixel_noise_std=2.0,
                                 time_offset_s=cfg.time_offset_s,
                                 blackout_intervals_s=(cfg.blackout_s,) if cfg.blackout_s else ())
         scene = "blank_wall" if spec.name == "fail-feature-poverty" else cfg.scene
         register(Scenario(spec.name, spec.description, "record", "quadrotor", scene, cfg.seconds,
-                          cfg.imu_preset,
-                          cam, _MotionFactory(cfg.motion, cfg.speed_scale)))
+                          cfg.imu_preset, cam, _MotionFactory(cfg.motion, cfg.speed_scale),
+                          still_start_s=cfg.still_s, faults=cfg.faults))
 
 
 @dataclass(frozen=True)
@@ -328,15 +314,28 @@ def failure_fly_scenarios() -> dict:
     from viotb.envs.fly import FlyScenario  # noqa: PLC0415
 
     items = [
-        FlyScenario("fly-fail-time-offset", "figure-8 with a 10 ms camera clock offset the estimator ignores",
-                    rig=RigConfig(camera=CameraModelParams(time_offset_s=0.01)), mission="figure8",
+        FlyScenario("fly-fail-time-offset",
+                    "figure-8 with a 10 ms camera clock offset the estimator is not told (fix: --calibrate)",
+                    rig=RigConfig(camera=CameraModelParams(time_offset_s=0.01),
+                                  faults=SensorFaults(assumed_time_offset_s=0.0)),
+                    mission="figure8", default_seconds=25.0),
+        FlyScenario("fly-fail-extrinsic",
+                    "figure-8 with a 2 deg error in the camera-IMU rotation given to the estimator (fix: "
+                    "--calibrate)",
+                    rig=RigConfig(faults=SensorFaults(extrinsic_error_rad=float(np.deg2rad(2.0)))),
+                    mission="figure8",
                     default_seconds=25.0),
+        FlyScenario("fly-fail-no-excitation",
+                    "4.5 m straight line at a constant 0.8 m/s: no acceleration while cruising",
+                    rig=RigConfig(start_p_W_m=(-2.5, 0.0, 0.06)), mission="line", default_seconds=20.0),
         FlyScenario("fly-fail-feature-poverty", "hover in front of a blank wall with a 3 s blackout",
                     rig=RigConfig(scene="blank_wall", start_p_W_m=(3.0, 0.0, 0.06),
                                   camera=CameraModelParams(blackout_intervals_s=((10.0, 13.0),))),
                     default_seconds=20.0),
         FlyScenario("fly-fail-gyro-saturation", "aggressive flight with a +-125 deg/s gyro",
                     rig=RigConfig(imu_preset="bmi088-125dps"), mission="aggressive", default_seconds=20.0),
+        FlyScenario("fly-fail-long-loop", "three laps of a 1.5 m square back to the start: odometry drift",
+                    mission="loops", default_seconds=50.0),
     ]
     return {s.name: s for s in items}
 

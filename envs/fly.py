@@ -27,6 +27,7 @@ from viotb.controllers.setpoints import (
     FigureEight,
     HoverPoint,
     Sequence,
+    StraightLine,
     Takeoff,
     Waypoints,
 )
@@ -51,7 +52,8 @@ class FlyScenario:
         name: Registry name.
         description: One line.
         rig: Scene, sensors, wind (the estimator and front end are chosen per run).
-        mission: ``"hover"``, ``"waypoints"``, ``"figure8"`` or ``"aggressive"``.
+        mission: ``"hover"``, ``"waypoints"``, ``"figure8"``, ``"aggressive"``, ``"line"`` (4.5 m along the
+            heading at a constant 0.8 m/s, then hover) or ``"loops"`` (three laps of the waypoint square).
         default_seconds: Default flight duration (s), ground phase included.
         takeoff_altitude_m: Climb above the start (m).
     """
@@ -116,12 +118,10 @@ FLY_SCENARIOS = _fly_scenarios()
 
 def _register_fly_scenarios() -> None:
     """List the closed-loop scenarios in the shared registry (``viotb scenarios``) as kind ``fly``."""
-    from viotb.envs.scenarios import Scenario, get_scenario, register
+    from viotb.envs.scenarios import Scenario, is_registered, register
 
-    for sc in FLY_SCENARIOS.values():
-        try:
-            get_scenario(sc.name)
-        except ValueError:
+    for sc in list(FLY_SCENARIOS.values()):
+        if not is_registered(sc.name):
             register(
                 Scenario(
                     name=sc.name,
@@ -146,6 +146,8 @@ def get_fly_scenario(name: str) -> FlyScenario:
         ValueError: Unknown name (lists the known ones).
     """
     if name not in FLY_SCENARIOS:
+        import viotb.envs.failures  # noqa: F401, PLC0415 (registers the fly-fail-* scenarios)
+    if name not in FLY_SCENARIOS:
         raise ValueError(f"unknown closed-loop scenario {name!r}; known: {sorted(FLY_SCENARIOS)}")
     return FLY_SCENARIOS[name]
 
@@ -154,14 +156,17 @@ def _mission(kind: str, hover_W: np.ndarray, yaw: float) -> object:
     """Mission setpoints starting at rest at ``hover_W`` (estimator frame)."""
     if kind == "hover":
         return HoverPoint(hover_W, yaw)
-    if kind == "waypoints":
+    if kind in ("waypoints", "loops"):
         R = rotz(yaw)
-        square = [
-            hover_W + R @ np.array(d)
-            for d in ([0, 0, 0], [1.5, 0, 0.5], [1.5, 1.5, 0.5], [0, 1.5, 0.5], [0, 0, 0])
-        ]
+        lap = [[1.5, 0, 0.5], [1.5, 1.5, 0.5], [0, 1.5, 0.5], [0, 0, 0]]
+        corners = [[0, 0, 0]] + lap * (3 if kind == "loops" else 1)
+        square = [hover_W + R @ np.array(d) for d in corners]
         yaws = np.full(len(square), yaw)
         return Sequence([Waypoints(np.array(square), yaws_rad=yaws, speed_m_s=0.6), HoverPoint(hover_W, yaw)])
+    if kind == "line":
+        line = StraightLine(hover_W, rotz(yaw) @ np.array([1.0, 0.0, 0.0]), length_m=4.5, speed_m_s=0.8,
+                            yaw_rad=yaw)
+        return Sequence([line, HoverPoint(line.sample(line.duration_s).p_W, yaw)])
     if kind == "figure8":
         return FigureEight(
             center_xy_m=hover_W[:2],
@@ -223,6 +228,7 @@ def fly(
     progress: ProgressFn | None = None,
     on_tick: Callable[[ClosedLoopSim, FlightLog], None] | None = None,
     gains: SE3Gains | None = None,
+    online_calibration: bool | None = None,
 ) -> tuple[dict, FlightLog]:
     """Fly a closed-loop scenario.
 
@@ -235,6 +241,8 @@ def fly(
         progress: Optional ``(done_s, total_s)`` callback.
         on_tick: Optional hook called every control tick (recorders use it).
         gains: Controller gains (defaults when None).
+        online_calibration: Estimate the camera-IMU time offset and extrinsics online (overrides the
+            scenario's rig when not None).
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -248,6 +256,8 @@ def fly(
     if not (total_s > 0.0 and np.isfinite(total_s)):
         raise ValueError(f"seconds must be positive and finite, got {seconds}")
     rig = replace(sc.rig, estimator=estimator, frontend=frontend)
+    if online_calibration is not None:
+        rig = replace(rig, online_calibration=bool(online_calibration))
     loop = ClosedLoopSim(rig, seed=seed)
     controller = SE3Controller(vehicle_params_from_model(loop.sim.model), gains or SE3Gains())
     log = FlightLog()

@@ -77,9 +77,12 @@ def record_scenario(
     t_imu = np.arange(n_imu) / imu_params.rate_hz
     truth = trajectory.sample_many(t_imu)
     imu_model = ImuModel(imu_params, np.random.default_rng(imu_seq))
+    # The scenario's IMU faults (an extra gyro bias, an accelerometer scale error) act before the model.
+    faults = scenario.faults
     imu, gyro_bias, accel_bias = imu_model.measure_series_with_biases(
-        t_imu, truth.omega_B, truth.specific_force_B
+        t_imu, *faults.imu_input(truth.omega_B, truth.specific_force_B)
     )
+    gyro_bias = gyro_bias + faults.extra_gyro_bias_rad_s
 
     # 3. Camera schedule.
     schedule = frame_schedule(cam_params, duration_s, np.random.default_rng(drop_seq))
@@ -124,7 +127,7 @@ def record_scenario(
             out_dir,
             imu,
             frames(),
-            calib,
+            faults.told_calibration(calib),  # a wrong calibration file when the scenario says so
             imu_params.noise,
             groundtruth,
             gyro_bias,

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from viotb.envs.camera_model import CameraModelParams
+from viotb.envs.faults import SensorFaults
 from viotb.envs.imu_model import imu_preset
 from viotb.envs.trajectories import TRAJECTORY_FACTORIES, MotionParams, StillStart, Trajectory
 from viotb.models.constants import SCENE_XMLS, VEHICLE_XMLS
@@ -34,6 +35,8 @@ class Scenario:
         trajectory: Factory ``duration_s -> Trajectory`` (None for scenarios without a scripted motion).
         still_start_s: Rest at the first pose before the motion (s), inside the duration, so that a static
             initializer can start as on real sequences; 0 disables it.
+        faults: Calibration / IMU errors written into a recording: the IMU readings carry the IMU faults and
+            the dataset's calibration files hold the wrong calibration (as a bad calibration file would).
     """
 
     name: str
@@ -46,6 +49,7 @@ class Scenario:
     camera: CameraModelParams = field(default_factory=CameraModelParams)
     trajectory: Callable[[float], Trajectory] | None = None
     still_start_s: float = 1.5
+    faults: SensorFaults = field(default_factory=SensorFaults)
 
     def __post_init__(self) -> None:
         """Validate names against the models and presets."""
@@ -89,8 +93,21 @@ def register(scenario: Scenario, replace: bool = False) -> Scenario:
     return scenario
 
 
+def is_registered(name: str) -> bool:
+    """Whether ``name`` is registered already (without importing the registering modules)."""
+    return name in _REGISTRY
+
+
+def _load_registrants() -> None:
+    """Import the modules that register more scenarios: closed-loop (``fly-*``) and failure (``fail-*``)."""
+    import viotb.envs.failures  # noqa: F401, PLC0415
+    import viotb.envs.fly  # noqa: F401, PLC0415
+
+
 def get_scenario(name: str) -> Scenario:
     """The scenario called ``name`` (ValueError listing the known names)."""
+    if name not in _REGISTRY:
+        _load_registrants()
     try:
         return _REGISTRY[name]
     except KeyError:
@@ -100,6 +117,7 @@ def get_scenario(name: str) -> Scenario:
 
 def list_scenarios() -> list[dict]:
     """All scenarios as dicts with keys name, kind, description, vehicle, scene, default_seconds."""
+    _load_registrants()
     return [
         {
             "name": s.name,

@@ -16,6 +16,7 @@ from viotb.envs.failures import (
     run_stream,
     synthesize_stream,
 )
+from viotb.envs.faults import SensorFaults
 from viotb.envs.fly import FLY_SCENARIOS
 from viotb.envs.scenarios import get_scenario
 from viotb.vio.msckf import MsckfParams
@@ -102,7 +103,8 @@ def test_time_offset_error_grows_with_speed():
     """
     ate = []
     for speed in (0.5, 1.0, 2.0):
-        cfg = StreamConfig(motion="figure8", seconds=SYNC_SECONDS, speed_scale=speed, time_offset_s=0.01)
+        cfg = StreamConfig(motion="figure8", seconds=SYNC_SECONDS, speed_scale=speed, time_offset_s=0.01,
+                           faults=SensorFaults(assumed_time_offset_s=0.0))
         ate.append(run_stream(synthesize_stream(cfg, 0)).metrics["ate_m"])
     assert ate[2] > 2.0 * ate[0] and ate[2] > ate[1], ate
 

@@ -10,6 +10,7 @@ from viotb.controllers.setpoints import (
     HoverPoint,
     Sequence,
     Setpoint,
+    StraightLine,
     Takeoff,
     Waypoints,
     min_jerk_profile,
@@ -115,6 +116,24 @@ def test_figure_eight_forever_and_bad_laps() -> None:
     _check_derivatives(sp, np.array([0.5, 1.5, 7.3, 30.1]))
     with pytest.raises(ValueError, match="laps"):
         FigureEight(center_xy_m=[0.0, 0.0], period_s=1.0, ramp_s=3.0, laps=1)
+
+
+def test_straight_line_cruises_at_constant_speed_and_ends_at_rest() -> None:
+    sp = StraightLine(start_W_m=[-2.0, 0.5, 1.0], direction_W=[2.0, 0.0, 0.0], length_m=4.0, speed_m_s=0.8,
+                      ramp_s=2.0)
+    assert sp.duration_s == pytest.approx(4.0 / 0.8 + 2.0, abs=1e-12)
+    _check_derivatives(sp, np.random.default_rng(0).uniform(0.01, sp.duration_s - 0.01, 20))
+    for t, p in ((0.0, [-2.0, 0.5, 1.0]), (sp.duration_s, [2.0, 0.5, 1.0])):
+        np.testing.assert_allclose(sp.sample(t).p_W, p, atol=1e-12)
+        _assert_at_rest(sp, t)
+    # Between the ramps: exactly the cruise speed along +x, no acceleration, and half a ramp of lag.
+    for t in (2.0, 3.5, 5.0):
+        out = sp.sample(t)
+        np.testing.assert_allclose(out.v_W, [0.8, 0.0, 0.0], atol=1e-12)
+        np.testing.assert_allclose(out.a_W, 0.0, atol=1e-12)
+        assert out.p_W[0] == pytest.approx(-2.0 + 0.8 * (t - 1.0), abs=1e-12)
+    with pytest.raises(ValueError, match="direction_W"):
+        StraightLine(start_W_m=[0.0, 0.0, 1.0], direction_W=[0.0, 0.0, 0.0], length_m=1.0)
 
 
 def test_excitation_derivatives_and_rest_ends() -> None:

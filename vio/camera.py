@@ -7,9 +7,10 @@ Pixel centres sit at integer coordinates.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+from viotb.vio.lie import exp_so3
 
 
 @dataclass(frozen=True)
@@ -120,3 +121,14 @@ class CameraCalibration:
     p_BC: np.ndarray
     time_offset_s: float = 0.0
     rate_hz: float = 20.0
+
+
+def with_extrinsic_rotation_error(calib: CameraCalibration, error_rad: float) -> CameraCalibration:
+    """``calib`` with ``R_BC`` rotated by ``error_rad`` about the camera axis ``(1, 0, 1) / sqrt(2)``.
+
+    The miscalibrated extrinsic of the failure scenarios: a rotation about the optical axis and the image x
+    axis at once, so that it shifts and rotates the image.
+    """
+    axis = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+    return replace(calib, R_BC=calib.R_BC @ exp_so3(axis * float(error_rad)))
+

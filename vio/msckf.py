@@ -16,7 +16,7 @@ updating and never raises from numpy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
@@ -147,6 +147,17 @@ class MsckfParams:
     runaway_frames: int = 10
     runaway_min_features: int = 5
     runaway_reject_ratio: float = 0.7
+
+    def with_online_calibration(
+        self, time_offset_sigma_s: float = 0.02, extrinsic_sigma_rad: float = 0.05
+    ) -> MsckfParams:
+        """These settings with the time offset and the extrinsics estimated online (wide priors).
+
+        The fix of the time-sync / extrinsic failure mode; with both on, the calibration that moves names
+        the cause (:class:`viotb.vio.health.HealthMonitor`).
+        """
+        return replace(self, estimate_time_offset=True, time_offset_sigma_s=time_offset_sigma_s,
+                       estimate_extrinsics=True, extrinsic_sigma_rad=extrinsic_sigma_rad)
 
 
 @dataclass(frozen=True)
