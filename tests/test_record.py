@@ -103,3 +103,26 @@ def test_bad_requests(tmp_path):
         record_scenario("nope", tmp_path)
     with pytest.raises(ValueError, match="seconds must be positive"):
         record_scenario("hover", tmp_path, seconds=-1.0)
+
+
+def test_failure_recordings_carry_their_wrong_calibration_and_imu_faults(tmp_path):
+    """``fail-*`` recordings hold what the failure needs: the wrong calibration file, the faulty IMU."""
+    from viotb.envs.render import camera_calibration  # noqa: PLC0415
+    from viotb.envs.sim import Simulation  # noqa: PLC0415
+    from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY  # noqa: PLC0415
+    from viotb.vio.lie import log_so3  # noqa: PLC0415
+
+    sim = Simulation("quadrotor", "textured_room")
+    true_R_BC = camera_calibration(sim.model, ONBOARD_CAMERA, QUAD_BODY, 320, 240).R_BC
+    ext = read_euroc(record_scenario("fail-extrinsic", tmp_path / "ext", seed=0, seconds=1.0)["out"])
+    angle = float(np.linalg.norm(log_so3(true_R_BC.T @ ext.calib.R_BC)))
+    assert angle == pytest.approx(np.deg2rad(2.0), abs=1e-9)
+    # The camera runs 10 ms late, the calibration file says 0.
+    off = read_euroc(record_scenario("fail-time-offset", tmp_path / "off", seed=0, seconds=1.0)["out"])
+    assert off.calib.time_offset_s == 0.0 and get_scenario("fail-time-offset").camera.time_offset_s == 0.01
+    # Bad init: +0.3 rad/s on every gyro axis and a 5 % accelerometer scale; at rest |a| reads 1.05 g.
+    bad = read_euroc(record_scenario("fail-bad-init", tmp_path / "bad", seed=0, seconds=1.0)["out"])
+    still = bad.imu.t_s < 1.0
+    # (measured 0.329 / 0.283 / 0.315: the part's own turn-on bias and scale errors spread the axes)
+    np.testing.assert_allclose(bad.imu.gyro_B_rad_s[still].mean(axis=0), 0.3, atol=0.05)
+    assert np.linalg.norm(bad.imu.accel_B_m_s2[still].mean(axis=0)) == pytest.approx(1.05 * 9.81, rel=0.01)

@@ -82,3 +82,26 @@ def test_scenario_is_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         get_scenario("hover").name = "x"  # type: ignore[misc]
     assert isinstance(get_scenario("circle"), Scenario)
+
+
+def test_sensor_faults_told_calibration_and_imu_input():
+    from viotb.envs.faults import SensorFaults  # noqa: PLC0415
+    from viotb.vio.camera import CameraCalibration, PinholeCamera  # noqa: PLC0415
+    from viotb.vio.lie import log_so3  # noqa: PLC0415
+
+    cam = PinholeCamera(320, 240, 250.0, 250.0, 160.0, 120.0)
+    true = CameraCalibration(cam, np.eye(3), np.zeros(3), time_offset_s=0.01)
+    told = SensorFaults(assumed_time_offset_s=0.0, extrinsic_error_rad=0.02).told_calibration(true)
+    # The rotation error is 0.02 rad about (1, 0, 1) / sqrt(2); the offset is replaced, the rest kept.
+    axis = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+    np.testing.assert_allclose(log_so3(told.R_BC), 0.02 * axis, atol=1e-12)
+    assert told.time_offset_s == 0.0 and told.camera == cam
+    same = SensorFaults().told_calibration(true)  # no fault: the truth
+    np.testing.assert_array_equal(same.R_BC, true.R_BC)
+    assert same.time_offset_s == 0.01
+    omega, f = SensorFaults(extra_gyro_bias_rad_s=0.1, accel_scale_error=0.05).imu_input(
+        np.zeros((2, 3)), np.tile([0.0, 0.0, 9.81], (2, 1)))
+    np.testing.assert_allclose(omega, 0.1)
+    np.testing.assert_allclose(f[:, 2], 1.05 * 9.81)
+    with pytest.raises(ValueError, match="extrinsic_error_rad"):
+        SensorFaults(extrinsic_error_rad=float("nan"))
