@@ -144,7 +144,14 @@ class ClosedLoopSim:
         )
         given = config.faults.told_calibration(self.calib)
         self.calib_given = given  # what the estimator is told; self.calib is the truth
-        params = MsckfParams().with_online_calibration() if config.online_calibration else None
+        # The fast mode knows its own pixel noise (as the open-loop streams do): a filter told 1 px while the
+        # simulated features carry 0.5 px has a nominal NIS per dof of 0.25, and the monitor's time-sync test
+        # (NIS > 1.15 while moving) never fires.
+        params = MsckfParams()
+        if config.frontend == "sim":
+            params = MsckfParams(pixel_sigma_px=config.sim_pixel_sigma_px)
+        if config.online_calibration:
+            params = params.with_online_calibration()
         self.estimator = make_estimator(
             config.estimator, given, imu_params.noise, frontend=config.frontend, params=params
         )
