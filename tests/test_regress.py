@@ -54,3 +54,19 @@ def test_fails_on_perturbed_baseline_and_bad_files(hover_result, tmp_path):
     path.write_text("{")
     with pytest.raises(ValueError, match="invalid JSON"):
         load_baseline(path)
+
+
+def test_short_run_is_compared_on_the_short_cases_only(hover_result, tmp_path):
+    from viotb.envs.regress import IMAGE_CASES, case_names, regress  # noqa: PLC0415
+
+    base = load_baseline(DEFAULT_BASELINE)
+    # The committed baseline holds the full set, image cases included.
+    assert set(case_names(full=True)) <= set(base["cases"]) and set(IMAGE_CASES) <= set(base["cases"])
+    assert not set(IMAGE_CASES) & set(case_names(full=False))
+    rows = compare(hover_result, base, cases=("hover-sim",))
+    assert {r["case"] for r in rows} == {"hover-sim"} and all(r["ok"] for r in rows)
+    # Without the filter every case the run lacks fails as missing.
+    missing = [r for r in compare(hover_result, base) if r["metric"] == "(missing)"]
+    assert {r["case"] for r in missing} == set(base["cases"]) - {"hover-sim"}
+    with pytest.raises(ValueError, match="--full"):
+        regress(tmp_path / "b.json", update=True, full=False)
