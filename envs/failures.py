@@ -314,6 +314,9 @@ def failure_fly_scenarios() -> dict:
     from viotb.envs.fly import FlyScenario  # noqa: PLC0415
 
     items = [
+        FlyScenario("fly-fail-bad-init",
+                    "hover with an out-of-spec IMU: +0.3 rad/s gyro bias on every axis, 5 % accel scale",
+                    rig=RigConfig(faults=FAILURES["fail-bad-init"].config(1.0).faults), default_seconds=20.0),
         FlyScenario("fly-fail-time-offset",
                     "figure-8 with a 10 ms camera clock offset the estimator is not told (fix: --calibrate)",
                     rig=RigConfig(camera=CameraModelParams(time_offset_s=0.01),

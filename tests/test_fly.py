@@ -140,3 +140,11 @@ def test_constant_velocity_line_in_flight_is_named_unexcited():
     names = {c["name"]: c["t_s_first"] for c in metrics["conditions"]}
     assert list(names) == ["insufficient_excitation"] and 11.0 < names["insufficient_excitation"] < 17.0
     assert not metrics["crashed"] and not metrics["diverged"]
+
+
+def test_out_of_spec_imu_is_named_at_initialization_on_the_ground():
+    """``fly-fail-bad-init``: measured (seed 0) ``initialization_failure`` at 1.55 s, |g| 10.31 m/s^2."""
+    metrics, _ = fly("fly-fail-bad-init", "msckf", seconds=4.0, seed=0, frontend="sim")
+    (cond,) = metrics["conditions"]
+    assert cond["name"] == "initialization_failure" and cond["t_s_first"] < 2.0, cond
+    assert "gravity norm" in cond["evidence"]
