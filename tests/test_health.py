@@ -26,7 +26,7 @@ def _fly(mon: HealthMonitor, seconds: float, rng, R_WB: np.ndarray, accel_W, spe
         mon.observe_imu(ImuSample(t, np.zeros(3), f_B))
         if k % 10 == 0:
             est = StateEstimate(t, R_WB, np.zeros(3), np.array([speed_m_s, 0.0, 0.0]), cov=np.eye(15) * 1e-4)
-            mon.observe_frame(t, HealthStatus(t, True, 100), est)
+            mon.observe_frame(t, HealthStatus(t, True, 100, updated_features=30), est)
 
 
 def test_excitation_flag_needs_translation_without_world_acceleration():
@@ -64,7 +64,7 @@ def test_excitation_is_measured_in_the_world_frame():
         if k % 10 == 0:
             R_aligned = _rotation_taking(f_B, np.array([0.0, 0.0, 1.0]))
             est = StateEstimate(t, R_aligned, np.zeros(3), np.array([1.0, 0.0, 0.0]), cov=np.eye(15) * 1e-4)
-            fooled.observe_frame(t, HealthStatus(t, True, 100), est)
+            fooled.observe_frame(t, HealthStatus(t, True, 100, updated_features=30), est)
     assert fooled.first_time("insufficient_excitation") is not None
 
 
@@ -133,3 +133,24 @@ def test_high_nis_while_moving_names_time_sync_or_extrinsic():
         quiet = HealthMonitor()
         _sync_frames(quiet, nis=nis, speed_m_s=speed, n_features=nf)
         assert quiet.report() == [], (nis, speed, nf)
+
+
+def test_moving_past_features_that_never_enter_an_update_is_divergence():
+    mon = HealthMonitor()
+    for k in range(60):  # 3 s at 20 Hz, 1 m/s, 100 tracks, no feature ever used
+        t = k * 0.05
+        est = StateEstimate(t, np.eye(3), np.zeros(3), np.array([1.0, 0.0, 0.0]), cov=np.eye(15) * 1e-4)
+        mon.observe_frame(t, HealthStatus(t, True, tracked_features=100, updated_features=0), est)
+    (c,) = mon.report()
+    # The clock starts at the first frame (t = 0); the first frame more than 2 s later is 2.05 s.
+    assert c.name == "divergence" and abs(c.t_s_first - 2.05) < 1e-9 and "none used" in c.evidence
+    # Updates every 6th frame, or no motion, or too few tracks: nothing.
+    for used_every, speed, tracks in ((6, 1.0, 100), (10**6, 0.0, 100), (10**6, 1.0, 10)):
+        quiet = HealthMonitor()
+        for k in range(60):
+            t = k * 0.05
+            est = StateEstimate(t, np.eye(3), np.zeros(3), np.array([speed, 0.0, 0.0]), cov=np.eye(15) * 1e-4)
+            used = 30 if k % used_every == 0 and k > 0 else 0
+            quiet.observe_frame(t, HealthStatus(t, True, tracked_features=tracks, updated_features=used), est)
+        # (10 tracks is feature poverty, but not divergence)
+        assert "divergence" not in {c.name for c in quiet.report()}, (used_every, speed, tracks)
