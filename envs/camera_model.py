@@ -28,6 +28,9 @@ class CameraModelParams:
         pixel_noise_std: Std of additive Gaussian pixel noise (grey levels, 0-255 scale).
         drop_probability: Probability that a frame is lost, in [0, 1].
         blackout_intervals_s: ``((start, end), ...)`` on the IMU clock (s) with no frames (lens covered).
+        exposure_s: Shutter open time (s), centred on the exposure instant; 0 renders an instant. Longer
+            exposures integrate the motion into the image (motion blur; open-loop recordings only).
+        blur_samples: Renders averaged over the exposure when ``exposure_s > 0``.
     """
 
     rate_hz: float = 20.0
@@ -38,6 +41,8 @@ class CameraModelParams:
     pixel_noise_std: float = 0.0
     drop_probability: float = 0.0
     blackout_intervals_s: tuple[tuple[float, float], ...] = ()
+    exposure_s: float = 0.0
+    blur_samples: int = 9
 
     def __post_init__(self) -> None:
         """Validate every field with a message naming it."""
@@ -56,6 +61,14 @@ class CameraModelParams:
         if not 0.0 <= self.drop_probability <= 1.0:
             raise ValueError(
                 f"CameraModelParams.drop_probability must be in [0, 1], got {self.drop_probability}"
+            )
+        if not (self.exposure_s >= 0.0 and self.exposure_s < 1.0 / self.rate_hz):
+            raise ValueError(
+                f"CameraModelParams.exposure_s must be in [0, 1 / rate_hz), got {self.exposure_s}"
+            )
+        if not (isinstance(self.blur_samples, int | np.integer) and self.blur_samples >= 2):
+            raise ValueError(
+                f"CameraModelParams.blur_samples must be an integer >= 2, got {self.blur_samples!r}"
             )
         for i, interval in enumerate(self.blackout_intervals_s):
             if len(interval) != 2 or not interval[0] < interval[1]:

@@ -109,11 +109,23 @@ def record_scenario(
         rng=np.random.default_rng(pixel_seq),
     )
 
+    def place_at(t_s: float) -> None:
+        s = trajectory.sample(t_s)
+        sim.set_pose(s.R_WB, s.p_WB, s.v_WB, s.omega_B, a_W=s.a_WB if is_headset else None)
+
+    blur_offsets_s = np.linspace(-0.5, 0.5, cam_params.blur_samples) * cam_params.exposure_s
+
     def frames() -> Iterator[tuple[float, np.ndarray]]:
         for done, i in enumerate(kept, start=1):
-            s = trajectory.sample(float(schedule.t_exposure_imu_s[i]))
-            sim.set_pose(s.R_WB, s.p_WB, s.v_WB, s.omega_B, a_W=s.a_WB if is_headset else None)
-            yield float(schedule.t_stamp_cam_s[i]), renderer.render_gray(sim.data)
+            t_exp = float(schedule.t_exposure_imu_s[i])
+            if cam_params.exposure_s > 0.0:
+                image = renderer.render_gray_exposure(
+                    sim.data, lambda o, t=t_exp: place_at(t + o), blur_offsets_s
+                )
+            else:
+                place_at(t_exp)
+                image = renderer.render_gray(sim.data)
+            yield float(schedule.t_stamp_cam_s[i]), image
             if progress is not None:
                 progress(done, len(kept))
 

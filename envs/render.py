@@ -272,7 +272,30 @@ class OffscreenRenderer:
 
     def render_gray(self, data) -> np.ndarray:
         """Render this renderer's camera as gray uint8, shape (H, W), with optional Gaussian noise."""
-        gray = rgb_to_gray(self.render_rgb(data))
+        return self._to_uint8(rgb_to_gray(self.render_rgb(data)))
+
+    def render_gray_exposure(self, data, place: Callable[[float], None], offsets_s: np.ndarray) -> np.ndarray:
+        """Gray uint8 image integrated over an exposure (motion blur), shape (H, W).
+
+        The mean of one render per offset, each after ``place(offset)`` has moved the scene in ``data`` to
+        that time within the exposure; the sensor noise is added once, to the integrated image.
+
+        Args:
+            data: ``MjData`` that ``place`` updates.
+            place: Sets ``data`` to the state at the given offset (s) from the exposure centre.
+            offsets_s: Offsets (s) of the renders, shape (N,), N >= 1.
+        """
+        acc = None
+        for offset in np.asarray(offsets_s, dtype=float):
+            place(float(offset))
+            rgb = self.render_rgb(data).astype(np.float32)
+            acc = rgb if acc is None else acc + rgb
+        if acc is None:
+            raise ValueError("render_gray_exposure: offsets_s is empty")
+        return self._to_uint8(rgb_to_gray(acc / len(offsets_s)))
+
+    def _to_uint8(self, gray: np.ndarray) -> np.ndarray:
+        """Add the sensor noise and quantize to uint8."""
         if self._noise_std > 0:
             gray = gray + self._rng.normal(0.0, self._noise_std, size=gray.shape).astype(np.float32)
         return np.clip(np.rint(gray), 0, 255).astype(np.uint8)

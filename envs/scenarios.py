@@ -166,6 +166,8 @@ _record("circle", "Quadrotor flies a 2 m-radius circle at 1.5 m/s, nose along th
 _record("figure8", "Quadrotor flies a 5 x 2.5 m figure-8 with a height wave.", 60.0)
 _record("line", "Quadrotor flies a straight line at constant velocity (weak excitation).", 8.0)
 _record("fast-rotation", "Quadrotor spins in yaw at 3 rad/s in place (rotation stress).", 20.0)
+_record("fast-rotation-blur", "The 3 rad/s spin with a 45 ms exposure: motion blur (feature poverty).", 20.0,
+        motion="fast-rotation", camera=CameraModelParams(rate_hz=20.0, pixel_noise_std=2.0, exposure_s=0.045))
 _record("aggressive", "Fast 3-D figure-8: ~5 m/s, ~9 m/s^2, 40 deg tilt.", 20.0)
 _record("long-loop", "Three laps of a 6 x 5 m ellipse returning to the start (drift / loop test).", 120.0)
 _record("head-walk", "Headset: walking a 2.2 m circle at 1.2 m/s with step bob.", 30.0, vehicle="headset")

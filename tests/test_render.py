@@ -16,6 +16,7 @@ from viotb.envs.render import (
     camera_calibration,
     camera_extrinsics,
     camera_intrinsics,
+    rgb_to_gray,
     select_gl_backend,
 )
 from viotb.envs.sim import Simulation
@@ -249,3 +250,30 @@ def test_select_gl_backend_error_names_packages(monkeypatch):
     for package in render_mod.EGL_PACKAGES.split() + ["libosmesa6", "pyopengl"]:
         assert package in message
     assert "MUJOCO_GL" not in os.environ
+
+
+def test_exposure_render_is_the_mean_of_the_renders_and_blurs_a_spin(room):
+    sim, renderer = room
+    position, yaw0, pitch = ROOM_VIEWS["centre_east"]
+
+    def place(offset_s: float, rate_rad_s: float = 3.0) -> None:  # a 3 rad/s yaw spin about the centre time
+        sim.set_pose(_body_rotation(yaw0 + np.rad2deg(rate_rad_s * offset_s), pitch), np.array(position))
+
+    offsets = np.linspace(-0.5, 0.5, 9) * 0.045
+    # Closed forms: a zero-length exposure is the instant render; otherwise the mean of the renders.
+    instant = renderer.render_gray_exposure(sim.data, lambda o: place(0.0), np.zeros(3))
+    place(0.0)
+    np.testing.assert_array_equal(instant, renderer.render_gray(sim.data))
+    manual = []
+    for o in offsets:
+        place(float(o))
+        manual.append(renderer.render_rgb(sim.data).astype(np.float32))
+    expected = np.clip(np.rint(rgb_to_gray(np.mean(manual, axis=0))), 0, 255).astype(np.uint8)
+    blurred = renderer.render_gray_exposure(sim.data, place, offsets)
+    assert np.max(np.abs(blurred.astype(int) - expected.astype(int))) <= 1  # float summation order
+    # 3 rad/s x 45 ms smears ~34 px at f ~ 250 px: the Laplacian energy (sharpness) drops well below half.
+    sharp = cv2.Laplacian(instant.astype(np.float32), cv2.CV_32F).var()
+    smeared = cv2.Laplacian(blurred.astype(np.float32), cv2.CV_32F).var()
+    assert smeared < 0.5 * sharp, (sharp, smeared)
+    with pytest.raises(ValueError, match="empty"):
+        renderer.render_gray_exposure(sim.data, place, np.zeros(0))
