@@ -85,6 +85,7 @@ def record(
     out: Path = typer.Option(..., "--out", help="Output folder; a EuRoC ASL tree is written to OUT/mav0."),
     seed: int = typer.Option(0, "--seed", help="Random seed (IMU noise, pixel noise, drops)."),
     seconds: float | None = typer.Option(None, "--seconds", help="Duration (s); scenario default if unset."),
+    severity: float | None = typer.Option(None, "--severity", help="Severity of a fail-* scenario."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Simulate a scenario open loop and write a EuRoC ASL dataset."""
@@ -94,7 +95,8 @@ def record(
         _fail(f"--seconds must be positive, got {seconds}")
     try:
         with _progress(f"record {scenario}", not as_json) as progress:
-            result = record_scenario(scenario, out, seed=seed, seconds=seconds, progress=progress)
+            result = record_scenario(scenario, out, seed=seed, seconds=seconds, progress=progress,
+                                     severity=severity)
     except (ValueError, FileNotFoundError) as exc:
         _fail(str(exc))
     _emit(result, as_json, f"recorded {scenario} -> {out}")
@@ -132,6 +134,7 @@ def fly(
     calibrate: bool = typer.Option(
         False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (MSCKF)."
     ),
+    severity: float | None = typer.Option(None, "--severity", help="Severity of a fly-fail-* scenario."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Fly a closed-loop scenario with the estimator in the loop."""
@@ -142,7 +145,7 @@ def fly(
     try:
         with _progress(f"fly {scenario}", not as_json) as progress:
             result, log = run_fly(scenario, estimator, seconds, seed, frontend, progress,
-                                  online_calibration=calibrate or None)
+                                  online_calibration=calibrate or None, severity=severity)
     except ValueError as exc:
         _fail(str(exc))
     if out is not None:

@@ -282,19 +282,32 @@ FAILURES: dict[str, FailureSpec] = {
 """The failure scenarios by name."""
 
 
+def failure_record_scenario(name: str, severity: float = 1.0) -> Scenario:
+    """Open-loop ``record`` scenario of failure ``name`` at ``severity``.
+
+    The recording holds the motion, the camera timing and the sensor faults (wrong calibration file, faulty
+    IMU); an in-flight start (``fail-no-excitation``) is the stream runner's and not part of a dataset.
+
+    Raises:
+        ValueError: Unknown failure or a bad severity.
+    """
+    if name not in FAILURES:
+        raise ValueError(f"unknown failure scenario {name!r}; known: {sorted(FAILURES)}")
+    spec = FAILURES[name]
+    cfg = spec.config(severity)
+    cam = CameraModelParams(rate_hz=cfg.camera_rate_hz, pixel_noise_std=2.0, time_offset_s=cfg.time_offset_s,
+                            blackout_intervals_s=(cfg.blackout_s,) if cfg.blackout_s else ())
+    scene = "blank_wall" if spec.name == "fail-feature-poverty" else cfg.scene
+    return Scenario(spec.name, spec.description, "record", "quadrotor", scene, cfg.seconds, cfg.imu_preset,
+                    cam, _MotionFactory(cfg.motion, cfg.speed_scale), still_start_s=cfg.still_s,
+                    faults=cfg.faults)
+
+
 def _register_record_scenarios() -> None:
     """Register each failure (default severity) as an open-loop ``record`` scenario."""
     for spec in FAILURES.values():
-        if is_registered(spec.name):
-            continue
-        cfg = spec.config(1.0)
-        cam = CameraModelParams(rate_hz=cfg.camera_rate_hz, pixel_noise_std=2.0,
-                                time_offset_s=cfg.time_offset_s,
-                                blackout_intervals_s=(cfg.blackout_s,) if cfg.blackout_s else ())
-        scene = "blank_wall" if spec.name == "fail-feature-poverty" else cfg.scene
-        register(Scenario(spec.name, spec.description, "record", "quadrotor", scene, cfg.seconds,
-                          cfg.imu_preset, cam, _MotionFactory(cfg.motion, cfg.speed_scale),
-                          still_start_s=cfg.still_s, faults=cfg.faults))
+        if not is_registered(spec.name):
+            register(failure_record_scenario(spec.name, 1.0))
 
 
 @dataclass(frozen=True)
@@ -308,24 +321,37 @@ class _MotionFactory:
         return TRAJECTORY_FACTORIES[self.motion](MotionParams(duration_s, speed_scale=self.speed_scale))
 
 
-def failure_fly_scenarios() -> dict:
-    """Closed-loop versions of the failures that the rig can express, as ``FlyScenario`` objects."""
+FLY_SEVERITY_KNOBS = ("fly-fail-bad-init", "fly-fail-time-offset", "fly-fail-extrinsic",
+                      "fly-fail-feature-poverty")
+"""Closed-loop failures whose rig follows the severity (the stream's faults, offset or blackout length)."""
+
+
+def failure_fly_scenarios(severity: float = 1.0) -> dict:
+    """Closed-loop versions of the failures that the rig can express, as ``FlyScenario`` objects.
+
+    ``severity`` scales the rigs of :data:`FLY_SEVERITY_KNOBS` as :meth:`FailureSpec.config` scales the
+    streams (the IMU faults, the clock offset, the extrinsic error; the blackout lasts ``3 x severity`` s);
+    the others do not depend on it.
+    """
     from viotb.envs.closed_loop import RigConfig  # noqa: PLC0415
     from viotb.envs.fly import FlyScenario  # noqa: PLC0415
 
+    sev = float(severity)
+    offset = FAILURES["fail-time-offset"].config(sev)
+    blackout = ((10.0, 10.0 + 3.0 * sev),) if sev > 0.0 else ()
     items = [
         FlyScenario("fly-fail-bad-init",
                     "hover with an out-of-spec IMU: +0.3 rad/s gyro bias on every axis, 5 % accel scale",
-                    rig=RigConfig(faults=FAILURES["fail-bad-init"].config(1.0).faults), default_seconds=20.0),
+                    rig=RigConfig(faults=FAILURES["fail-bad-init"].config(sev).faults), default_seconds=20.0),
         FlyScenario("fly-fail-time-offset",
                     "figure-8 with a 10 ms camera clock offset the estimator is not told (fix: --calibrate)",
-                    rig=RigConfig(camera=CameraModelParams(time_offset_s=0.01),
-                                  faults=SensorFaults(assumed_time_offset_s=0.0)),
+                    rig=RigConfig(camera=CameraModelParams(time_offset_s=offset.time_offset_s),
+                                  faults=offset.faults),
                     mission="figure8", default_seconds=25.0),
         FlyScenario("fly-fail-extrinsic",
                     "figure-8 with a 2 deg error in the camera-IMU rotation given to the estimator (fix: "
                     "--calibrate)",
-                    rig=RigConfig(faults=SensorFaults(extrinsic_error_rad=float(np.deg2rad(2.0)))),
+                    rig=RigConfig(faults=FAILURES["fail-extrinsic"].config(sev).faults),
                     mission="figure8",
                     default_seconds=25.0),
         FlyScenario("fly-fail-no-excitation",
@@ -333,7 +359,7 @@ def failure_fly_scenarios() -> dict:
                     rig=RigConfig(start_p_W_m=(-2.5, 0.0, 0.06)), mission="line", default_seconds=20.0),
         FlyScenario("fly-fail-feature-poverty", "hover in front of a blank wall with a 3 s blackout",
                     rig=RigConfig(scene="blank_wall", start_p_W_m=(3.0, 0.0, 0.06),
-                                  camera=CameraModelParams(blackout_intervals_s=((10.0, 13.0),))),
+                                  camera=CameraModelParams(blackout_intervals_s=blackout)),
                     default_seconds=20.0),
         FlyScenario("fly-fail-gyro-saturation", "aggressive flight with a +-125 deg/s gyro",
                     rig=RigConfig(imu_preset="bmi088-125dps"), mission="aggressive", default_seconds=20.0),
@@ -341,6 +367,22 @@ def failure_fly_scenarios() -> dict:
                     mission="loops", default_seconds=50.0),
     ]
     return {s.name: s for s in items}
+
+
+def failure_fly_scenario(name: str, severity: float = 1.0) -> object:
+    """The ``FlyScenario`` of closed-loop failure ``name`` at ``severity``.
+
+    Raises:
+        ValueError: Unknown name, or a severity other than 1 for a scenario without a knob.
+    """
+    scenarios = failure_fly_scenarios(severity)
+    if name not in scenarios:
+        raise ValueError(f"unknown closed-loop failure {name!r}; known: {sorted(scenarios)}")
+    if name not in FLY_SEVERITY_KNOBS and float(severity) != 1.0:
+        raise ValueError(
+            f"{name} has no severity knob in closed loop; the ones that do: {FLY_SEVERITY_KNOBS}"
+        )
+    return scenarios[name]
 
 
 def register_fly_failures() -> None:

@@ -229,6 +229,7 @@ def fly(
     on_tick: Callable[[ClosedLoopSim, FlightLog], None] | None = None,
     gains: SE3Gains | None = None,
     online_calibration: bool | None = None,
+    severity: float | None = None,
 ) -> tuple[dict, FlightLog]:
     """Fly a closed-loop scenario.
 
@@ -243,6 +244,8 @@ def fly(
         gains: Controller gains (defaults when None).
         online_calibration: Estimate the camera-IMU time offset and extrinsics online (overrides the
             scenario's rig when not None).
+        severity: For a ``fly-fail-*`` scenario with a knob, its severity
+            (``viotb.envs.failures.failure_fly_scenario``); None = the registered default.
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -251,7 +254,12 @@ def fly(
     Raises:
         ValueError: Unknown scenario/estimator/front end, non-positive ``seconds``.
     """
-    sc = get_fly_scenario(scenario)
+    if severity is None:
+        sc = get_fly_scenario(scenario)
+    else:
+        from viotb.envs.failures import failure_fly_scenario  # noqa: PLC0415
+
+        sc = failure_fly_scenario(scenario, severity)
     total_s = sc.default_seconds if seconds is None else float(seconds)
     if not (total_s > 0.0 and np.isfinite(total_s)):
         raise ValueError(f"seconds must be positive and finite, got {seconds}")

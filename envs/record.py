@@ -38,6 +38,7 @@ def record_scenario(
     seed: int = 0,
     seconds: float | None = None,
     progress: Callable[[float, float], None] | None = None,
+    severity: float | None = None,
 ) -> dict:
     """Simulate scenario ``name`` open loop and write a EuRoC ASL folder ``out_dir/mav0``.
 
@@ -47,6 +48,7 @@ def record_scenario(
         seed: Seed of every random component (same seed, byte-identical output).
         seconds: Duration (s); the scenario default when None.
         progress: Optional callback ``(done, total)`` called after each rendered frame.
+        severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.failures``); None = default.
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
@@ -61,7 +63,12 @@ def record_scenario(
     from viotb.envs.sim import Simulation  # noqa: PLC0415
 
     wall_start = time.perf_counter()
-    scenario = get_scenario(name)
+    if severity is None:
+        scenario = get_scenario(name)
+    else:
+        from viotb.envs.failures import failure_record_scenario  # noqa: PLC0415
+
+        scenario = failure_record_scenario(name, severity)
     if seconds is not None and not (np.isfinite(seconds) and seconds > 0.0):
         raise ValueError(f"record_scenario: seconds must be positive, got {seconds}")
     duration_s = float(scenario.default_seconds if seconds is None else seconds)

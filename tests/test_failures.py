@@ -321,3 +321,24 @@ def test_confident_wrong_start_is_named_divergence():
     t = r.run.monitor.first_time("divergence")
     assert t is not None and t < 9.5, r.run.monitor.report()
     assert r.metrics["final_err_m"] > 1.0, r.metrics
+
+
+def test_closed_loop_and_recorded_failures_follow_the_severity(tmp_path):
+    from viotb.envs.euroc import read_euroc  # noqa: PLC0415
+    from viotb.envs.failures import failure_fly_scenario, failure_record_scenario  # noqa: PLC0415
+    from viotb.envs.record import record_scenario  # noqa: PLC0415
+    from viotb.vio.lie import log_so3  # noqa: PLC0415
+
+    off = failure_fly_scenario("fly-fail-time-offset", 2.0).rig
+    assert off.camera.time_offset_s == pytest.approx(0.02) and off.faults.assumed_time_offset_s == 0.0
+    blank = failure_fly_scenario("fly-fail-feature-poverty", 2.0).rig.camera
+    assert blank.blackout_intervals_s == ((10.0, 16.0),)
+    assert failure_fly_scenario("fly-fail-extrinsic", 0.0).rig.faults.extrinsic_error_rad == 0.0
+    with pytest.raises(ValueError, match="no severity knob"):
+        failure_fly_scenario("fly-fail-long-loop", 2.0)
+    assert failure_record_scenario("fail-bad-init", 2.0).faults.extra_gyro_bias_rad_s == pytest.approx(0.6)
+    # The recorded calibration file carries twice the default rotation error.
+    told = read_euroc(record_scenario("fail-extrinsic", tmp_path, seconds=0.5, severity=2.0)["out"]).calib
+    default = read_euroc(record_scenario("fail-extrinsic", tmp_path / "d", seconds=0.5)["out"]).calib
+    # Both errors are about the same axis, so the two told rotations differ by the default 2 deg.
+    assert np.rad2deg(np.linalg.norm(log_so3(default.R_BC.T @ told.R_BC))) == pytest.approx(2.0, abs=1e-9)
