@@ -263,7 +263,7 @@ def failures(
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(json.dumps(reports, indent=2, default=float) + "\n")
     if as_json:
-        sys.stdout.write(json.dumps(reports, default=float) + "\n")
+        sys.stdout.write(json.dumps({"failures": reports}, default=float) + "\n")
         return
     table = Table(title=f"failure modes (seed {seed}, severity {severity}); plots in {out}")
     for col in ("scenario", "monitor said (first time)", "fix", "ATE failing", "ATE fixed", "fixed run said"):
