@@ -146,7 +146,7 @@ class ClosedLoopSim:
         self.calib_given = given  # what the estimator is told; self.calib is the truth
         # The fast mode knows its own pixel noise (as the open-loop streams do): a filter told 1 px while the
         # simulated features carry 0.5 px has a nominal NIS per dof of 0.25, and the monitor's time-sync test
-        # (NIS > 1.15 while moving) never fires.
+        # (NIS > 1.25 while moving) never fires.
         params = MsckfParams()
         if config.frontend == "sim":
             params = MsckfParams(pixel_sigma_px=config.sim_pixel_sigma_px)

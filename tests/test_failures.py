@@ -63,7 +63,7 @@ SYNC_SECONDS = 8.0
 
 @pytest.mark.parametrize(("name", "latest_s"), [("fail-time-offset", 5.0), ("fail-extrinsic", 6.5)])
 def test_time_sync_or_extrinsic_is_named(name, latest_s):
-    """Measured (seed 0): named at 3.65 s (10 ms offset) and 5.05 s (2 deg); motion starts at 1.5 s."""
+    """Measured (seed 0): named at 3.75 s (10 ms offset) and 5.5 s (2 deg); motion starts at 1.5 s."""
     spec = FAILURES[name]
     r = run_stream(synthesize_stream(replace(spec.config(1.0), seconds=SYNC_SECONDS), seed=0))
     t = r.run.monitor.first_time("time_sync_or_extrinsic_suspected")

@@ -112,7 +112,10 @@ class HealthParams:
         speed_window_frames: Updates (frames with a finite ``nis_per_dof_all``) in the NIS window.
         max_nis_per_dof: Mean NIS per dof over the window above which a time-sync / extrinsic error is
             suspected (1 for a consistent filter; measured window means 0.92-1.03 on nominal hover, circle
-            and figure-8 streams, 1.2-1.6 with a 2 deg extrinsic error or a 10 ms offset on a figure-8).
+            and figure-8 streams, up to 1.53 with a 2 deg extrinsic error and 2.49 with a 10 ms offset on a
+            figure-8 at 2x speed, and up to 1.15-1.2 on a nominal aggressive 5 rad/s, 4 m/s manoeuvre, whose
+            few fast-moving features leave the filter mildly inconsistent: 1.15 raised a false alarm there;
+            1.25 names the extrinsic error 0.1-0.5 s later, seeds 0-2).
         min_sync_speed_m_s: The window's mean linear speed (m/s) must exceed this...
         min_sync_rate_rad_s: ...or its mean angular speed (rad/s) this (the errors vanish at rest).
         sync_min_features: Updates with fewer gated features (used + rejected) are ignored.
@@ -140,7 +143,7 @@ class HealthParams:
     poverty_frames: int = 5
     min_saturated_samples: int = 1
     speed_window_frames: int = 30
-    max_nis_per_dof: float = 1.15
+    max_nis_per_dof: float = 1.25
     min_sync_speed_m_s: float = 0.3
     min_sync_rate_rad_s: float = 0.3
     sync_min_features: int = 5
