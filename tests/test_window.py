@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -242,6 +243,46 @@ def test_initialize_reports_the_initial_covariance_and_state():
     with pytest.raises(ValueError, match="cov_diag"):
         est.initialize(InitResult(1.0, np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3),
                                   "static", np.zeros(15)))
+
+
+MICRO = Path("/work/shared/data/euroc_v1_01_micro")
+
+
+def _euroc_drift_m(params: WindowParams) -> tuple[float, int]:
+    """Largest position change (m) of the estimates over the still EuRoC micro cut (KLT on real images)."""
+    from viotb.envs.euroc import load_image, read_euroc
+    from viotb.vio.types import CameraFrame
+
+    ds = read_euroc(MICRO)
+    est = WindowEstimator(ds.calib, ds.imu_noise, params)
+    t_frames = ds.cam_t_s + ds.calib.time_offset_s
+    i = int(np.searchsorted(ds.imu.t_s, t_frames[0] - 1.0))
+    p = []
+    for k, t in enumerate(t_frames):
+        while ds.imu.t_s[i] <= t:
+            est.feed_imu(ds.imu.sample(i))
+            i += 1
+        est.feed_camera(CameraFrame(t_s=float(ds.cam_t_s[k]), image=load_image(ds, k)))
+        e = est.estimate()
+        if e is not None:
+            p.append(e.p_WB)
+    assert not est.health().diverged
+    p = np.array(p)
+    return float(np.max(np.linalg.norm(p - p[0], axis=1))), len(p)
+
+
+@pytest.mark.skipif(not MICRO.exists(), reason="EuRoC micro dataset not present")
+def test_real_euroc_at_rest_holds_position_with_zero_velocity_factor():
+    """Real EuRoC V1_01 images (KLT) at rest (truth moves < 2 mm over the cut's 4.7 s).
+
+    Nothing triangulates without parallax, so only the zero-velocity factor holds the velocity. Measured:
+    3.0 mm largest drift with it, 4.1 cm without it (the MSCKF with its ZUPT: 0.9 mm) over 65 estimates.
+    """
+    drift, n = _euroc_drift_m(WindowParams(frontend="klt"))
+    assert n > 50
+    assert drift < 0.01, drift
+    drift_off, _ = _euroc_drift_m(WindowParams(frontend="klt", zero_velocity_max_disparity_px=0.0))
+    assert drift_off > 0.02, drift_off
 
 
 @pytest.mark.slow
