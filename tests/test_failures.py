@@ -142,9 +142,12 @@ def _scale_symptoms(seeds) -> dict:
     runs = {"line": (spec.config(1.0), None), "fig8": (cfg_fix, prm_fix)}
     out = {}
     for name, (cfg, prm) in runs.items():
-        rows, flags = [], []
+        rows, flags, nis, others = [], [], [], set()
         for seed in seeds:
             r = run_stream(synthesize_stream(replace(cfg, landmark_count=600), seed), prm)
+            nis += [h.nis_per_dof for h, e in zip(r.run.health, r.run.estimates, strict=True)
+                    if e is not None and np.isfinite(h.nis_per_dof) and EARLY_S[0] <= e.t_s < CRUISE_END_S]
+            others |= {c.name for c in r.run.monitor.report()} - {"insufficient_excitation"}
             _, early_sig = along_track_velocity_stats(r, *EARLY_S, relative=True)
             late_err, late_sig = along_track_velocity_stats(r, *LATE_S, relative=True)
             s, e = anchored_position_error_m(r)
@@ -155,7 +158,8 @@ def _scale_symptoms(seeds) -> dict:
         a = np.array(rows)
         out[name] = {"late_err": float(np.sqrt(np.mean(a[:, 0] ** 2))), "early_sig": float(np.mean(a[:, 1])),
                      "late_sig": float(np.mean(a[:, 2])), "pos_err_m": float(np.sqrt(np.mean(a[:, 3] ** 2))),
-                     "path_m": float(np.mean(a[:, 4])), "flags": flags}
+                     "path_m": float(np.mean(a[:, 4])), "flags": flags, "nis": float(np.mean(nis)),
+                     "others": others}
     return out
 
 
@@ -171,6 +175,8 @@ def _assert_scale_symptoms(st: dict, injected: float = 0.1) -> None:
     # The monitor names it within 3 s of the cruise start and stays quiet on the excited run.
     assert all(t is not None and t <= 6.5 for t in line["flags"]), st
     assert all(t is None for t in fig8["flags"]), st
+    # "The system looks healthy": consistent residuals (NIS per dof ~1) and no other condition.
+    assert 0.8 < line["nis"] < 1.2 and not line["others"], st
 
 
 def test_no_excitation_leaves_the_scale_error_uncorrected():
