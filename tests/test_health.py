@@ -154,3 +154,31 @@ def test_moving_past_features_that_never_enter_an_update_is_divergence():
             quiet.observe_frame(t, HealthStatus(t, True, tracked_features=tracks, updated_features=used), est)
         # (10 tracks is feature poverty, but not divergence)
         assert "divergence" not in {c.name for c in quiet.report()}, (used_every, speed, tracks)
+
+
+def test_calibration_drift_names_the_calibration_that_moved():
+    from viotb.vio.types import CalibrationDrift  # noqa: PLC0415
+
+    est = StateEstimate(1.0, np.eye(3), np.zeros(3), np.zeros(3), cov=np.eye(15) * 1e-4)
+    deg = np.deg2rad(1.0)
+
+    def named(drift: CalibrationDrift) -> set[str]:
+        mon = HealthMonitor()
+        mon.observe_frame(1.0, HealthStatus(1.0, True, 100, updated_features=30, calibration=drift), est)
+        return {c.name for c in mon.report()}
+
+    # Limits: more than 5 sigma and more than 2 ms / 0.5 deg / 2 cm.
+    late = CalibrationDrift(time_offset_s=0.003, time_offset_sigma_s=1e-4)
+    assert named(late) == {"time_offset_miscalibrated"}
+    assert named(CalibrationDrift(time_offset_s=0.003, time_offset_sigma_s=1e-3)) == set()  # 3 sigma
+    assert named(CalibrationDrift(time_offset_s=0.001, time_offset_sigma_s=1e-5)) == set()  # below 2 ms
+    zeros, tiny = np.zeros(3), np.full(3, 1e-3)
+    rot = CalibrationDrift(rotation_BC_rad=np.array([deg, 0.0, 0.0]),
+                           rotation_sigma_rad=np.full(3, 0.02 * deg), translation_BC_m=zeros,
+                           translation_sigma_m=tiny)
+    assert named(rot) == {"extrinsic_miscalibrated"}
+    small = CalibrationDrift(rotation_BC_rad=np.array([0.3 * deg, 0.0, 0.0]), rotation_sigma_rad=tiny * 1e-3,
+                             translation_BC_m=np.array([0.03, 0.0, 0.0]),
+                             translation_sigma_m=np.full(3, 0.01))
+    assert named(small) == set()  # 0.3 deg is below 0.5 deg; 3 cm is only 3 sigma
+    assert named(CalibrationDrift()) == set()  # nothing estimated (all NaN)
