@@ -207,6 +207,28 @@ def test_same_seed_same_estimates():
     assert ate_a == ate_b
 
 
+def test_divergence_reported_through_health_not_raised():
+    """A 300 m/s^2 accelerometer fault from t = 2.5 s: no exception, ``health().diverged`` with a reason.
+
+    Measured: every gated feature is an outlier from the fault on; declared at 3.6 s (5 keyframes later).
+    """
+    from viotb.vio.health import monitor_run
+    from viotb.vio.types import Estimator, ImuSeries
+
+    stream = _stream(0, 3.0)
+    accel = stream.imu.accel_B_m_s2.copy()
+    accel[stream.imu.t_s > 2.5] += [300.0, 0.0, 0.0]
+    imu = ImuSeries(stream.imu.t_s, stream.imu.gyro_B_rad_s, accel, stream.imu.saturated)
+    est = WindowEstimator(stream.calib_given, stream.noise,
+                          WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px))
+    assert isinstance(est, Estimator)
+    run = monitor_run(est, imu, stream.frames, stream.time_offset_s)
+    h = run.health[-1]
+    assert h.diverged and "outliers" in h.reason
+    assert 2.5 < h.t_s < 4.0
+    assert not any(x.diverged for x in run.health if x.t_s < 2.5)
+
+
 def _calib():
     from viotb.vio.camera import CameraCalibration, PinholeCamera
 

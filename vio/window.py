@@ -75,7 +75,12 @@ class WindowParams:
         frontend: ``"klt"`` (images) or ``"sim"`` (``frame.features``).
         klt: KLT settings.
         triangulation: Triangulation settings.
-        max_cost_per_residual: Final cost per residual above which a keyframe counts as a cost blow-up.
+        max_cost_per_residual: Final cost of the IMU and reprojection residuals (prior excluded) per residual
+            above which a keyframe counts as a cost blow-up.
+        runaway_reject_ratio: A keyframe also counts as a blow-up when more than this fraction of its gated
+            features (landmarks plus new candidates) were outliers or failed the triangulation's reprojection
+            gate.
+        runaway_min_features: Fewest gated features for that rule.
         blowup_keyframes: Consecutive blow-up keyframes that declare divergence.
         max_position_sigma_m: Position sigma (m) beyond which divergence is declared.
     """
@@ -99,6 +104,8 @@ class WindowParams:
     klt: KltParams = field(default_factory=KltParams)
     triangulation: TriangulationParams = field(default_factory=TriangulationParams)
     max_cost_per_residual: float = 100.0
+    runaway_reject_ratio: float = 0.7
+    runaway_min_features: int = 5
     blowup_keyframes: int = 5
     max_position_sigma_m: float = 100.0
 
@@ -248,6 +255,7 @@ class _System:
     cost: float
     n_res: int
     max_err: np.ndarray  # (L,) largest whitened error per landmark
+    meas_cost: float  # cost without the prior
 
 
 def _pose_index(n_kf: int) -> np.ndarray:
@@ -308,6 +316,7 @@ class WindowEstimator:
         self._diverged_reason = ""
         self._blowups = 0
         self._used = 0
+        self._n_bad = 0
         self._version = 0
         self._est_cache: tuple[int, float, StateEstimate] | None = None
         self.solve_times_s: list[float] = []
@@ -457,6 +466,7 @@ class WindowEstimator:
         p = self.params
         last = self.keyframes[-1]
         t_s = tracks.t_imu_s
+        self._n_bad = 0
         # 1. Preintegrate and predict the new keyframe (Forster eq. 33).
         readings = self._readings(last.t_s, t_s)
         pre = preintegrate(*readings, last.x, self.noise)
@@ -501,6 +511,7 @@ class WindowEstimator:
         for f, fid in enumerate(cand):
             if tri.valid[f]:
                 self.landmarks[fid] = tri.p_W[f].copy()
+        self._n_bad += int(np.sum(tri.rms_error_px >= p.triangulation.max_reprojection_error_px))
 
     def _observations(self, lm_ids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of the landmarks ``lm_ids``."""
@@ -523,6 +534,7 @@ class WindowEstimator:
         H = np.zeros((D, D))
         g = np.zeros(D)
         cost = 0.0
+        prior_cost = 0.0
         n_res = 0
         # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
         for k in links:
@@ -544,7 +556,8 @@ class WindowEstimator:
                                  for key, x0 in zip(pr.keys, pr.x0, strict=True)])
             H[np.ix_(idx, idx)] += pr.H
             g[idx] += pr.H @ dx + pr.g
-            cost += float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
+            prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
+            cost += prior_cost
         # b2. Zero-velocity factors ``v / sigma`` on still keyframes.
         for k in still:
             w_v = 1.0 / self.params.zero_velocity_sigma_m_s
@@ -587,7 +600,7 @@ class WindowEstimator:
             np.add.at(H_ll, lm_i, np.einsum("mia,mib->mab", J_pt * w[:, None, None], J_pt))
             np.add.at(g_l, lm_i, np.einsum("mia,mi->ma", J_pt * w[:, None, None], r))
             np.add.at(E, (lm_i, kf_i), np.einsum("mia,mib->mab", Jw, J_pt))
-        return _System(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err)
+        return _System(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err, cost - prior_cost)
 
     @staticmethod
     def _reduce(sys: _System, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -651,7 +664,7 @@ class WindowEstimator:
         e_last = np.zeros((n, NX))
         e_last[n - NX:] = np.eye(NX)
         self._cov_newest = np.linalg.solve(S, e_last)[n - NX:]
-        self._last_cost_per_res = sys.cost / max(sys.n_res, 1)
+        self._last_cost_per_res = sys.meas_cost / max(sys.n_res, 1)
         self._used = len(lm_ids)
         # 6. Outliers and landmarks behind a camera leave the window with their observations.
         if len(lm_ids):
@@ -663,6 +676,8 @@ class WindowEstimator:
             bad[lm_i[depth < p.triangulation.min_depth_m]] = True
             for j in np.nonzero(bad)[0]:
                 self._drop_landmark(lm_ids[j])
+            self._n_bad += int(np.sum(bad))
+            self._used = len(lm_ids) - int(np.sum(bad))
         self.solve_times_s.append(time.perf_counter() - t0)
 
     def _drop_landmark(self, fid: int) -> None:
@@ -705,10 +720,14 @@ class WindowEstimator:
                                      f"{p.max_position_sigma_m}")
             return
         c = getattr(self, "_last_cost_per_res", 0.0)
-        self._blowups = self._blowups + 1 if c > p.max_cost_per_residual else 0
+        gated = self._used + self._n_bad
+        runaway = gated >= p.runaway_min_features and self._n_bad > p.runaway_reject_ratio * gated
+        self._blowups = self._blowups + 1 if (c > p.max_cost_per_residual or runaway) else 0
         if self._blowups >= p.blowup_keyframes:
-            self._diverged_reason = (f"cost blow-up: cost per residual {c:.1f} > {p.max_cost_per_residual} "
-                                     f"in {self._blowups} consecutive keyframes")
+            self._diverged_reason = (
+                f"cost blow-up in {self._blowups} consecutive keyframes: cost per measurement residual "
+                f"{c:.1f} (limit {p.max_cost_per_residual}), {self._n_bad} of {gated} features rejected as "
+                f"outliers or inconsistent (limit {p.runaway_reject_ratio:.0%})")
 
     def _make_health(self, t_s: float, tracks: Tracks) -> HealthStatus:
         conds = []
