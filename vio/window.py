@@ -631,8 +631,9 @@ class WindowEstimator:
             n_res += 2 * len(kf_i)
             np.maximum.at(max_err, lm_i, e)
             Jw = J_pose * w[:, None, None]
-            Hpp = np.einsum("mia,mib->mab", Jw, J_pose)
-            gp = np.einsum("mia,mi->ma", Jw, r)
+            JwT = np.swapaxes(Jw, 1, 2)
+            Hpp = JwT @ J_pose
+            gp = (JwT @ r[:, :, None])[:, :, 0]
             Hpp_k = np.zeros((N, 6, 6))
             gp_k = np.zeros((N, 6))
             np.add.at(Hpp_k, kf_i, Hpp)
@@ -641,9 +642,10 @@ class WindowEstimator:
             for k in range(N):
                 H[np.ix_(pidx[k], pidx[k])] += Hpp_k[k]
                 g[pidx[k]] += gp_k[k]
-            np.add.at(H_ll, lm_i, np.einsum("mia,mib->mab", J_pt * w[:, None, None], J_pt))
-            np.add.at(g_l, lm_i, np.einsum("mia,mi->ma", J_pt * w[:, None, None], r))
-            np.add.at(E, (lm_i, kf_i), np.einsum("mia,mib->mab", Jw, J_pt))
+            JptT = np.swapaxes(J_pt * w[:, None, None], 1, 2)
+            np.add.at(H_ll, lm_i, JptT @ J_pt)
+            np.add.at(g_l, lm_i, (JptT @ r[:, :, None])[:, :, 0])
+            np.add.at(E, (lm_i, kf_i), JwT @ J_pt)
         return _System(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err, cost - prior_cost)
 
     @staticmethod
@@ -653,12 +655,14 @@ class WindowEstimator:
         H = sys.H + lam * np.diag(np.diag(sys.H))
         H_ll = sys.H_ll + lam * np.einsum("lii->li", sys.H_ll)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3)
         H_ll_inv = np.linalg.inv(H_ll)
-        EH = np.einsum("lai,lij->laj", sys.E, H_ll_inv)
+        EH = sys.E @ H_ll_inv
+        L = len(H_ll_inv)
+        EH_flat = np.swapaxes(EH, 0, 1).reshape(N6, 3 * L)
         pidx = _pose_index(N6 // 6)
         S = H.copy()
-        S[np.ix_(pidx, pidx)] -= np.einsum("laj,lbj->ab", EH, sys.E)
+        S[np.ix_(pidx, pidx)] -= EH_flat @ np.swapaxes(sys.E, 0, 1).reshape(N6, 3 * L).T
         g = sys.g.copy()
-        g[pidx] -= np.einsum("laj,lj->a", EH, sys.g_l)
+        g[pidx] -= EH_flat @ sys.g_l.ravel()
         return S, g, H_ll_inv
 
     def _optimize(self) -> None:
@@ -687,7 +691,8 @@ class WindowEstimator:
         for _ in range(p.max_iterations):
             S, g_red, H_ll_inv = self._reduce(sys, lam)
             dx = np.linalg.solve(S, -g_red)
-            dl = -np.einsum("lij,lj->li", H_ll_inv, sys.g_l + np.einsum("lai,a->li", sys.E, dx[pidx]))
+            rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
+            dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
             xs_new = [retract(x, dx[k * NX:(k + 1) * NX]) for k, x in enumerate(xs)]
             pts_new = pts + dl
             sys_new = self._linearize(xs_new, pts_new, obs, links, still, no_motion)
