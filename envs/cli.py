@@ -105,7 +105,7 @@ def record(
 @app.command("eval")
 def eval_(
     dataset: Path = typer.Argument(..., help="EuRoC-layout folder (containing mav0/, or mav0 itself)."),
-    estimator: str = typer.Option("msckf", "--estimator", help="msckf | imu-only | ground-truth."),
+    estimator: str = typer.Option("msckf", "--estimator", help="msckf | window | imu-only | ground-truth."),
     out: Path = typer.Option(Path("viotb_out/eval"), "--out", help="Output folder for the TUM files."),
     frontend: str = typer.Option("klt", "--frontend", help="klt (images) | sim (recorded landmarks, fast)."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
@@ -126,7 +126,7 @@ def eval_(
 @app.command()
 def fly(
     scenario: str = typer.Argument(..., help="Closed-loop scenario (see `viotb scenarios`)."),
-    estimator: str = typer.Option("msckf", "--estimator", help="msckf | imu-only | ground-truth."),
+    estimator: str = typer.Option("msckf", "--estimator", help="msckf | window | imu-only | ground-truth."),
     seconds: float | None = typer.Option(None, "--seconds", help="Flight duration (s)."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
     frontend: str = typer.Option("klt", "--frontend", help="klt (rendered images) | sim (fast mode)."),

@@ -34,6 +34,7 @@ from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
 from viotb.vio.factory import make_estimator
 from viotb.vio.msckf import MsckfParams
 from viotb.vio.types import CameraFrame, HealthStatus, ImuSample, StateEstimate
+from viotb.vio.window import WindowParams
 
 
 @dataclass(frozen=True)
@@ -147,13 +148,17 @@ class ClosedLoopSim:
         # The fast mode knows its own pixel noise (as the open-loop streams do): a filter told 1 px while the
         # simulated features carry 0.5 px has a nominal NIS per dof of 0.25, and the monitor's time-sync test
         # (NIS > 1.25 while moving) never fires.
-        params = MsckfParams()
+        params, window_params = MsckfParams(), WindowParams()
         if config.frontend == "sim":
             params = MsckfParams(pixel_sigma_px=config.sim_pixel_sigma_px)
+            window_params = WindowParams(pixel_sigma_px=config.sim_pixel_sigma_px)
         if config.online_calibration:
+            if config.estimator != "msckf":
+                raise ValueError(f"online calibration needs the msckf estimator, got {config.estimator!r}")
             params = params.with_online_calibration()
         self.estimator = make_estimator(
-            config.estimator, given, imu_params.noise, frontend=config.frontend, params=params
+            config.estimator, given, imu_params.noise, frontend=config.frontend, params=params,
+            window_params=window_params,
         )
         need_images = config.frontend == "klt" or config.render_images
         self.renderer = (

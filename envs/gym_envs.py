@@ -123,7 +123,8 @@ class VioEnvConfig:
 
     Attributes:
         action_type: One of :data:`ACTION_TYPES`.
-        estimator: One of ``viotb.vio.factory.ESTIMATOR_NAMES`` (``msckf``, ``imu-only``, ``ground-truth``).
+        estimator: One of ``viotb.vio.factory.ESTIMATOR_NAMES`` (``msckf``, ``window``, ``imu-only``,
+            ``ground-truth``).
         frontend: ``sim`` (projected landmarks, fast) or ``klt`` (OpenCV on rendered images).
         imu_preset: IMU model preset (``viotb.envs.imu_model.imu_preset_names()``).
         scene: Scene name (``viotb.models.constants.SCENE_XMLS``).

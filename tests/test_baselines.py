@@ -13,7 +13,7 @@ def test_factory_builds_every_name_and_rejects_unknown():
     for name in ESTIMATOR_NAMES:
         est = make_estimator(name, world.calib, ImuNoise(), frontend="sim")
         assert isinstance(est, Estimator) and est.name == name
-    with pytest.raises(ValueError, match="allowed: msckf, imu-only, ground-truth"):
+    with pytest.raises(ValueError, match="allowed: msckf, window, imu-only, ground-truth"):
         make_estimator("window9", world.calib, ImuNoise())
     with pytest.raises(ValueError, match="allowed: klt, sim"):
         make_estimator("msckf", world.calib, ImuNoise(), frontend="orb")

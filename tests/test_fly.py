@@ -148,3 +148,14 @@ def test_out_of_spec_imu_is_named_at_initialization_on_the_ground():
     (cond,) = metrics["conditions"]
     assert cond["name"] == "initialization_failure" and cond["t_s_first"] < 2.0, cond
     assert "gravity norm" in cond["evidence"]
+
+
+def test_window_optimizer_flies_the_closed_loop():
+    """The sliding-window optimizer in the loop (simulated features, 15 s).
+
+    Measured (seed 0): hover 1.7 cm RMS over 20 s (MSCKF 1.1 cm); figure-8 1.45 cm over 30 s (MSCKF 1.8 cm);
+    on images 1.2 cm hover and 3.35 cm figure-8 at 1.0x real time (MSCKF 1.2 and 3.1 cm at 1.7-1.8x).
+    """
+    metrics, _ = fly("fly-hover", "window", seconds=15.0, seed=0, frontend="sim")
+    assert not metrics["crashed"] and not metrics["diverged"], metrics["reason"]
+    assert metrics["hover_rms_m"] < 0.05 and metrics["conditions"] == []

@@ -200,7 +200,7 @@ def test_bad_actions_raise_clear_errors():
     ("kwargs", "listed"),
     [
         ({"action_type": "torque"}, "'motors', 'ctbr', 'velocity', 'position'"),
-        ({"estimator": "ekf"}, "'msckf', 'imu-only', 'ground-truth'"),
+        ({"estimator": "ekf"}, "'msckf', 'window', 'imu-only', 'ground-truth'"),
         ({"frontend": "orb"}, "'klt', 'sim'"),
         ({"obs_mode": "pixels"}, "'state', 'dict'"),
         ({"imu_preset": "nope"}, "adis16448"),

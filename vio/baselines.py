@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.msckf import _init_fields, _make_initializer
+from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.propagator import Integration, Propagator
-from viotb.vio.state import IMU_BLOCK, State, marginal_covariance
+from viotb.vio.state import IMU_BLOCK, State, marginal_covariance, read_init_record
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
 
 
@@ -32,14 +32,14 @@ class ImuOnlyEstimator:
         """Create an uninitialized dead-reckoning estimator."""
         self.calib = calib
         self.propagator = Propagator(noise, integration, use_fej=False)
-        self.initializer = _make_initializer(calib, noise)
+        self.initializer = InertialInitializer(calib, noise, InitParams())
         self.state: State | None = None
         self._last_imu: ImuSample | None = None
         self._health = HealthStatus(t_s=0.0, initialized=False)
 
     def initialize(self, init: object) -> None:
         """Start from an ``InitResult``-like record (as ``MsckfEstimator.initialize``)."""
-        t_s, vals, cov = _init_fields(init)
+        t_s, vals, cov = read_init_record(init)
         self.state = State(t_s, vals, cov, self.calib.R_BC, self.calib.p_BC, self.calib.time_offset_s)
         self._health = HealthStatus(t_s=t_s, initialized=True)
 

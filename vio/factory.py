@@ -8,8 +8,9 @@ from viotb.vio.baselines import GroundTruthEstimator, ImuOnlyEstimator
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.msckf import MsckfEstimator, MsckfParams
 from viotb.vio.types import Estimator, ImuNoise
+from viotb.vio.window import WindowEstimator, WindowParams
 
-ESTIMATOR_NAMES = ("msckf", "imu-only", "ground-truth")
+ESTIMATOR_NAMES = ("msckf", "window", "imu-only", "ground-truth")
 FRONTEND_NAMES = ("klt", "sim")
 
 
@@ -20,6 +21,7 @@ def make_estimator(
     *,
     frontend: str = "klt",
     params: MsckfParams | None = None,
+    window_params: WindowParams | None = None,
 ) -> Estimator:
     """Create the estimator ``name`` (one of :data:`ESTIMATOR_NAMES`).
 
@@ -27,8 +29,9 @@ def make_estimator(
         name: Estimator name.
         calib: Camera calibration.
         noise: IMU noise densities.
-        frontend: ``"klt"`` or ``"sim"`` (MSCKF only; overrides ``params.frontend``).
+        frontend: ``"klt"`` or ``"sim"`` (MSCKF and window; overrides the front end of their settings).
         params: MSCKF settings.
+        window_params: Sliding-window optimizer settings.
 
     Raises:
         ValueError: for an unknown name or front end, listing the allowed ones.
@@ -38,6 +41,9 @@ def make_estimator(
     if name == "msckf":
         p = params if params is not None else MsckfParams()
         return MsckfEstimator(calib, noise, replace(p, frontend=frontend))
+    if name == "window":
+        w = window_params if window_params is not None else WindowParams()
+        return WindowEstimator(calib, noise, replace(w, frontend=frontend))
     if name == "imu-only":
         return ImuOnlyEstimator(calib, noise)
     if name == "ground-truth":

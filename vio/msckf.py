@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.frontend import FeatureDatabase, FrontEnd, KltParams, KltTracker, SimFeatureTracker, Tracks
+from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.lie import log_so3
 from viotb.vio.propagator import Integration, Propagator
 from viotb.vio.state import (
@@ -38,6 +39,7 @@ from viotb.vio.state import (
     is_psd,
     marginal_covariance,
     marginalize_oldest_clone,
+    read_init_record,
 )
 from viotb.vio.triangulation import TriangulationParams, triangulate
 from viotb.vio.types import (
@@ -187,47 +189,6 @@ class UpdateStats:
     nis_per_dof_all: float = float("nan")
 
 
-def _init_fields(init: object) -> tuple[float, ImuValues, np.ndarray]:
-    """Read an ``InitResult``-like record (t_s, R_WB, p_WB, v_WB, biases, cov_diag) with clear errors."""
-    try:
-        t_s = float(init.t_s)  # type: ignore[attr-defined]
-        vals = ImuValues(
-            np.array(init.R_WB, dtype=float),  # type: ignore[attr-defined]
-            np.array(init.p_WB, dtype=float),  # type: ignore[attr-defined]
-            np.array(init.v_WB, dtype=float),  # type: ignore[attr-defined]
-            np.array(init.gyro_bias_rad_s, dtype=float),  # type: ignore[attr-defined]
-            np.array(init.accel_bias_m_s2, dtype=float),  # type: ignore[attr-defined]
-        )
-        cov_diag = np.asarray(init.cov_diag, dtype=float)  # type: ignore[attr-defined]
-    except AttributeError as exc:
-        raise ValueError(f"initialize: the init record lacks a field ({exc})") from None
-    shapes = {
-        "R_WB": (vals.R_WB, (3, 3)),
-        "p_WB": (vals.p_WB, (3,)),
-        "v_WB": (vals.v_WB, (3,)),
-        "gyro_bias_rad_s": (vals.gyro_bias_rad_s, (3,)),
-        "accel_bias_m_s2": (vals.accel_bias_m_s2, (3,)),
-        "cov_diag": (cov_diag, (15,)),
-    }
-    for name, (arr, shape) in shapes.items():
-        if arr.shape != shape:
-            raise ValueError(f"initialize: {name} must have shape {shape}, got {arr.shape}")
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(f"initialize: {name} is not finite: {arr.tolist()}")
-    if np.any(cov_diag <= 0.0):
-        raise ValueError(f"initialize: cov_diag must be positive, got {cov_diag.tolist()}")
-    return t_s, vals, np.diag(cov_diag)
-
-
-def _make_initializer(calib: CameraCalibration, noise: ImuNoise) -> object | None:
-    """The shared :class:`InertialInitializer` when that module is available, else None."""
-    try:
-        from viotb.vio.initialization import InertialInitializer, InitParams
-    except ImportError:
-        return None
-    return InertialInitializer(calib, noise, InitParams())
-
-
 class MsckfEstimator:
     """The MSCKF estimator (implements :class:`viotb.vio.types.Estimator`).
 
@@ -271,7 +232,7 @@ class MsckfEstimator:
         self.database = FeatureDatabase(p.max_clones + 3)
         self.chi2 = Chi2Table(2 * (p.max_clones + 2) + 20)
         self.state: State | None = None
-        self.initializer = _make_initializer(calib, noise)
+        self.initializer = InertialInitializer(calib, noise, InitParams())
         self._focal_px = 0.5 * (calib.camera.fx + calib.camera.fy)
         self._sigma_norm = p.pixel_sigma_px / self._focal_px
         self._prev_tracks: Tracks | None = None
@@ -291,7 +252,7 @@ class MsckfEstimator:
     # ------------------------------------------------------------------ protocol
     def initialize(self, init: object) -> None:
         """Start the filter from an ``InitResult`` (t_s, R_WB, p_WB, v_WB, biases, cov_diag (15,))."""
-        t_s, vals, cov = _init_fields(init)
+        t_s, vals, cov = read_init_record(init)
         p = self.params
         ext_cov = None
         if p.estimate_extrinsics:

@@ -369,3 +369,43 @@ def is_psd(state: State, tol: float = 1e-12) -> bool:
 def set_imu_fej(state: State) -> None:
     """Record the current IMU values as the first estimates (after each propagation)."""
     state.imu_fej = state.imu.copy()
+
+
+def read_init_record(init: object) -> tuple[float, ImuValues, np.ndarray]:
+    """Read an ``InitResult``-like record (t_s, R_WB, p_WB, v_WB, biases, cov_diag) with clear errors.
+
+    Returns:
+        ``(t_s, values, cov)``: the time (s), the IMU state and the 15x15 diagonal covariance (StateEstimate
+        order ``[dtheta, dp, dv, dbg, dba]``).
+
+    Raises:
+        ValueError: A missing field, a wrong shape, a non-finite value or a non-positive variance.
+    """
+    try:
+        t_s = float(init.t_s)  # type: ignore[attr-defined]
+        vals = ImuValues(
+            np.array(init.R_WB, dtype=float),  # type: ignore[attr-defined]
+            np.array(init.p_WB, dtype=float),  # type: ignore[attr-defined]
+            np.array(init.v_WB, dtype=float),  # type: ignore[attr-defined]
+            np.array(init.gyro_bias_rad_s, dtype=float),  # type: ignore[attr-defined]
+            np.array(init.accel_bias_m_s2, dtype=float),  # type: ignore[attr-defined]
+        )
+        cov_diag = np.asarray(init.cov_diag, dtype=float)  # type: ignore[attr-defined]
+    except AttributeError as exc:
+        raise ValueError(f"initialize: the init record lacks a field ({exc})") from None
+    shapes = {
+        "R_WB": (vals.R_WB, (3, 3)),
+        "p_WB": (vals.p_WB, (3,)),
+        "v_WB": (vals.v_WB, (3,)),
+        "gyro_bias_rad_s": (vals.gyro_bias_rad_s, (3,)),
+        "accel_bias_m_s2": (vals.accel_bias_m_s2, (3,)),
+        "cov_diag": (cov_diag, (15,)),
+    }
+    for name, (arr, shape) in shapes.items():
+        if arr.shape != shape:
+            raise ValueError(f"initialize: {name} must have shape {shape}, got {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"initialize: {name} is not finite: {arr.tolist()}")
+    if np.any(cov_diag <= 0.0):
+        raise ValueError(f"initialize: cov_diag must be positive, got {cov_diag.tolist()}")
+    return t_s, vals, np.diag(cov_diag)

@@ -34,11 +34,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.frontend import FrontEnd, KltParams, KltTracker, SimFeatureTracker, Tracks
+from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.lie import exp_so3, log_so3, right_jacobian_inv_so3, right_jacobian_so3, skew
 from viotb.vio.marginalization import LinearPrior, schur_complement
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.propagator import ImuBuffer, select_imu_readings
-from viotb.vio.state import ImuValues
+from viotb.vio.state import ImuValues, read_init_record
 from viotb.vio.triangulation import TriangulationParams, triangulate
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate, gravity_W
 
@@ -296,9 +297,7 @@ class WindowEstimator:
             self.frontend = SimFeatureTracker(calib.camera)
         else:
             raise ValueError(f"WindowParams.frontend must be 'klt' or 'sim', got {p.frontend!r}")
-        from viotb.vio.msckf import _make_initializer  # noqa: PLC0415 (shared initializer factory)
-
-        self.initializer = _make_initializer(calib, noise)
+        self.initializer = InertialInitializer(calib, noise, InitParams())
         self.buffer = ImuBuffer()
         self._focal_px = 0.5 * (calib.camera.fx + calib.camera.fy)
         self._sigma_norm = p.pixel_sigma_px / self._focal_px
@@ -332,9 +331,7 @@ class WindowEstimator:
         It becomes the first keyframe, with a prior ``diag(1 / cov_diag)`` (which fixes the gauge: position
         and yaw).
         """
-        from viotb.vio.msckf import _init_fields  # noqa: PLC0415 (shared validation of the init record)
-
-        t_s, vals, cov = _init_fields(init)
+        t_s, vals, cov = read_init_record(init)
         kf = _Keyframe(self._next_key, t_s, vals.copy(), {})
         self._next_key += 1
         self.keyframes, self.links, self.landmarks = [kf], [], {}
