@@ -397,3 +397,22 @@ class FeatureDatabase:
     def num_features(self) -> int:
         """Number of feature ids stored."""
         return len(self._id_to_col)
+
+
+def make_frontend(kind: str, camera: PinholeCamera, klt: KltParams, owner: str) -> FrontEnd:
+    """The front end named ``kind``: ``"klt"`` (images) or ``"sim"`` (``frame.features``).
+
+    Args:
+        kind: Front-end name.
+        camera: Intrinsics.
+        klt: KLT settings (used by ``"klt"``).
+        owner: Settings class named in the error (e.g. ``"MsckfParams"``).
+
+    Raises:
+        ValueError: Unknown ``kind``, naming ``owner.frontend`` and the value.
+    """
+    if kind == "klt":
+        return KltTracker(camera, klt)
+    if kind == "sim":
+        return SimFeatureTracker(camera)
+    raise ValueError(f"{owner}.frontend must be 'klt' or 'sim', got {kind!r}")

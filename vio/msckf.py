@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.frontend import FeatureDatabase, FrontEnd, KltParams, KltTracker, SimFeatureTracker, Tracks
+from viotb.vio.frontend import FeatureDatabase, FrontEnd, KltParams, Tracks, make_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.lie import log_so3
 from viotb.vio.propagator import Integration, Propagator
@@ -220,14 +220,9 @@ class MsckfEstimator:
                 "MsckfParams.update_linearization must be 'current_oc', 'current' or 'first_estimates', "
                 f"got {p.update_linearization!r}"
             )
-        if frontend is not None:
-            self.frontend = frontend
-        elif p.frontend == "klt":
-            self.frontend = KltTracker(calib.camera, p.klt)
-        elif p.frontend == "sim":
-            self.frontend = SimFeatureTracker(calib.camera)
-        else:
-            raise ValueError(f"MsckfParams.frontend must be 'klt' or 'sim', got {p.frontend!r}")
+        if frontend is None:
+            frontend = make_frontend(p.frontend, calib.camera, p.klt, "MsckfParams")
+        self.frontend = frontend
         self.propagator = Propagator(noise, p.integration, p.use_fej)
         self.database = FeatureDatabase(p.max_clones + 3)
         self.chi2 = Chi2Table(2 * (p.max_clones + 2) + 20)

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.frontend import FrontEnd, KltParams, KltTracker, SimFeatureTracker, Tracks
+from viotb.vio.frontend import FrontEnd, KltParams, Tracks, make_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.lie import exp_so3, log_so3, right_jacobian_inv_so3, right_jacobian_so3, skew
 from viotb.vio.marginalization import LinearPrior, schur_complement
@@ -289,14 +289,9 @@ class WindowEstimator:
             raise ValueError(f"WindowParams.window_size must be in 2..60, got {p.window_size}")
         if not p.pixel_sigma_px > 0.0:
             raise ValueError(f"WindowParams.pixel_sigma_px must be > 0, got {p.pixel_sigma_px}")
-        if frontend is not None:
-            self.frontend = frontend
-        elif p.frontend == "klt":
-            self.frontend = KltTracker(calib.camera, p.klt)
-        elif p.frontend == "sim":
-            self.frontend = SimFeatureTracker(calib.camera)
-        else:
-            raise ValueError(f"WindowParams.frontend must be 'klt' or 'sim', got {p.frontend!r}")
+        if frontend is None:
+            frontend = make_frontend(p.frontend, calib.camera, p.klt, "WindowParams")
+        self.frontend = frontend
         self.initializer = InertialInitializer(calib, noise, InitParams())
         self.buffer = ImuBuffer()
         self._focal_px = 0.5 * (calib.camera.fx + calib.camera.fy)
