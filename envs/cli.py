@@ -226,7 +226,7 @@ def regress(
     except (ValueError, FileNotFoundError) as exc:
         _fail(str(exc))
     if as_json:
-        print(json.dumps({"passed": passed, "rows": rows, "result": result}, indent=2, default=float))
+        sys.stdout.write(json.dumps({"passed": passed, "rows": rows, "result": result}, default=float) + "\n")
     else:
         table = Table(title=f"regress vs {path}" + (" (baseline updated)" if update else ""))
         for col in ("case", "metric", "value", "baseline", "limit", "ok"):

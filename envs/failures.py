@@ -36,6 +36,7 @@ from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.metrics import align_umeyama, scale_error_pct
 from viotb.vio.msckf import MsckfEstimator, MsckfParams
 from viotb.vio.types import CameraFrame, ImuSeries, TrajectoryArrays
+from viotb.vio.window import WindowEstimator, WindowParams
 
 NO_EXCITATION_START_S = 3.5
 """Stream time (s) at which ``fail-no-excitation`` starts the estimator: the line's cruise begins (the
@@ -413,16 +414,29 @@ class RunResult:
 
 
 def run_stream(
-    stream: Stream, params: MsckfParams | None = None, health: HealthParams | None = None
+    stream: Stream, params: MsckfParams | None = None, health: HealthParams | None = None,
+    estimator: str = "msckf",
 ) -> RunResult:
-    """Run the MSCKF (sim front end) with a monitor over a stream and measure position error vs time.
+    """Run an estimator (sim front end) with a monitor over a stream and measure position error vs time.
 
     The error is taken after a 4-DOF (yaw + translation) alignment of the whole estimated trajectory;
     ``metrics`` holds ``ate_m``, ``final_err_m``, ``scale_error_pct`` (sim(3) fit on the positions),
     ``init_time_s``, ``diverged``, ``time_offset_est_s``.
+
+    Args:
+        stream: A :func:`synthesize_stream` output.
+        params: MSCKF settings (``estimator="msckf"``); by default the stream's pixel noise.
+        health: Monitor thresholds.
+        estimator: ``"msckf"`` or ``"window"`` (the sliding-window optimizer, told the stream's pixel noise).
     """
     prm = params if params is not None else MsckfParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
-    est = MsckfEstimator(stream.calib_given, stream.noise, replace(prm, frontend="sim"))
+    if estimator == "msckf":
+        est = MsckfEstimator(stream.calib_given, stream.noise, replace(prm, frontend="sim"))
+    elif estimator == "window":
+        est = WindowEstimator(stream.calib_given, stream.noise,
+                              WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px))
+    else:
+        raise ValueError(f"run_stream: estimator must be 'msckf' or 'window', got {estimator!r}")
     monitor = HealthMonitor(health)
     imu, frames = stream.imu, stream.frames
     if stream.external_init is not None:

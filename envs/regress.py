@@ -4,7 +4,8 @@ Short set (default): in-memory open-loop streams of :mod:`viotb.envs.failures` (
 rendering) evaluated with the MSCKF and the simulated front end, plus one closed-loop ``fly-hover`` with the
 simulated front end. ``full`` adds a fast circle and the 60 s long loop (simulated features), and the image
 path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``) and a 20 s
-closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``).
+closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``), and the circle with the sliding-window
+optimizer (``circle-sim-window``).
 
 The baseline holds the full set; a short run is compared on the short set's cases only.
 
@@ -53,6 +54,8 @@ FULL_CASES = {
 }
 IMAGE_CASES = ("figure8-klt", "fly-hover-klt")
 """Full-set cases on rendered images."""
+WINDOW_CASES = {"circle-sim-window": StreamConfig(motion="circle", seconds=10.0, landmark_count=600)}
+"""Full-set cases run with the sliding-window optimizer instead of the MSCKF."""
 
 
 def case_names(full: bool = False, fly_case: bool = True) -> tuple[str, ...]:
@@ -61,7 +64,7 @@ def case_names(full: bool = False, fly_case: bool = True) -> tuple[str, ...]:
     if fly_case:
         names.append("fly-hover-sim")
     if full:
-        names += IMAGE_CASES
+        names += [*IMAGE_CASES, *WINDOW_CASES]
     return tuple(names)
 
 
@@ -79,10 +82,12 @@ def reference_ms() -> float:
     return float(np.median(out))
 
 
-def _stream_case(cfg: StreamConfig, seed: int, params: MsckfParams, ref_ms: float) -> dict:
+def _stream_case(
+    cfg: StreamConfig, seed: int, params: MsckfParams, ref_ms: float, estimator: str = "msckf"
+) -> dict:
     stream = synthesize_stream(cfg, seed)
     t0 = time.perf_counter()
-    res = run_stream(stream, params)
+    res = run_stream(stream, params, estimator=estimator)
     ms = (time.perf_counter() - t0) * 1e3 / max(len(res.run.health), 1)
     m = res.metrics
     path = float(np.sum(np.linalg.norm(np.diff(stream.truth.p_WB, axis=0), axis=1)))
@@ -171,6 +176,8 @@ def run_suite(
     if full and only is None:
         out["figure8-klt"] = _recording_case(seed, ref)
         out["fly-hover-klt"] = _fly_case(seed, ref, frontend="klt", seconds=20.0)
+        for name, cfg in WINDOW_CASES.items():
+            out[name] = _stream_case(cfg, seed, prm, ref, estimator="window")
     return {"reference_ms": ref, "seed": seed, "cases": out}
 
 
