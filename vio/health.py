@@ -158,6 +158,49 @@ class HealthParams:
     min_translation_change_m: float = 0.02
 
 
+class _SlidingWindow:
+    """Rows ``x`` (fixed width) stamped ``t`` over the last ``window_s`` seconds, kept as contiguous arrays.
+
+    The monitor reads its windows at every IMU sample; arrays (rather than deques of tuples rebuilt into
+    arrays on each read) keep that read free of Python loops.
+    """
+
+    def __init__(self, window_s: float, width: int) -> None:
+        self._window_s = float(window_s)
+        self._t = np.empty(256)
+        self._x = np.empty((256, width))
+        self._start = 0
+        self._end = 0
+
+    def append(self, t: float, row: np.ndarray) -> None:
+        """Add a row and drop the rows older than ``t - window_s`` (those with time ``< t - window_s``)."""
+        if self._end == len(self._t):
+            n = self._end - self._start
+            if 2 * n > len(self._t):  # more than half full: grow, else compact in place
+                self._t = np.concatenate([self._t, np.empty(len(self._t))])
+                self._x = np.concatenate([self._x, np.empty_like(self._x)])
+            self._t[:n] = self._t[self._start:self._end]
+            self._x[:n] = self._x[self._start:self._end]
+            self._start, self._end = 0, n
+        self._t[self._end] = t
+        self._x[self._end] = row
+        self._end += 1
+        self._start += int(np.searchsorted(self.t, t - self._window_s, side="left"))
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    @property
+    def t(self) -> np.ndarray:
+        """Times (s), shape (N,), increasing."""
+        return self._t[self._start:self._end]
+
+    @property
+    def x(self) -> np.ndarray:
+        """Rows, shape (N, width)."""
+        return self._x[self._start:self._end]
+
+
 @dataclass(frozen=True)
 class Condition:
     """A named condition raised by the monitor.
@@ -185,8 +228,8 @@ class HealthMonitor:
         self.params = params if params is not None else HealthParams()
         self._conditions: dict[str, Condition] = {}
         self._active: set[str] = set()
-        self._imu: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
-        self._accel_W: deque[tuple[float, np.ndarray]] = deque()
+        self._imu = _SlidingWindow(self.params.excitation_window_s, 6)  # [gyro_B, accel_B]
+        self._accel_W = _SlidingWindow(self.params.excitation_window_s, 3)
         self._attitude: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None  # t, R_WB, b_g, b_a
         self._first_imu_t: float | None = None
         self._last_imu_t: float | None = None
@@ -211,9 +254,7 @@ class HealthMonitor:
         if self._first_imu_t is None:
             self._first_imu_t = t
         self._last_imu_t = t
-        self._imu.append((t, gyro, accel))
-        while self._imu and self._imu[0][0] < t - p.excitation_window_s:
-            self._imu.popleft()
+        self._imu.append(t, np.concatenate([gyro, accel]))
         self._rotate_accel(t, gyro, accel)
         if sample.saturated:
             self._n_saturated += 1
@@ -295,24 +336,23 @@ class HealthMonitor:
         if t > t_att:
             R_WB = R_WB @ exp_so3((gyro - b_g) * (t - t_att))
             self._attitude = (t, R_WB, b_g, b_a)
-        self._accel_W.append((t, R_WB @ (accel - b_a) - np.array([0.0, 0.0, GRAVITY_M_S2])))
-        while self._accel_W and self._accel_W[0][0] < t - self.params.excitation_window_s:
-            self._accel_W.popleft()
+        self._accel_W.append(t, R_WB @ (accel - b_a) - np.array([0.0, 0.0, GRAVITY_M_S2]))
 
     def _world_accel_rms(self) -> float:
         """RMS over the window of the norms of the block-mean world accelerations (m/s^2)."""
-        t = np.array([x[0] for x in self._accel_W])
-        a = np.array([x[1] for x in self._accel_W])
+        t, a = self._accel_W.t, self._accel_W.x
         block = np.floor((t - t[0]) / self.params.excitation_block_s).astype(int)
-        means = np.array([a[block == b].mean(axis=0) for b in np.unique(block)])
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(block)) + 1])  # blocks are contiguous runs
+        counts = np.diff(np.append(starts, len(t)))
+        means = np.add.reduceat(a, starts, axis=0) / counts[:, None]
         return float(np.sqrt(np.mean(np.sum(means**2, axis=1))))
 
     def _check_excitation(self, t: float) -> None:
         p = self.params
-        window_full = bool(self._accel_W) and t - self._accel_W[0][0] >= 0.99 * p.excitation_window_s
+        window_full = len(self._accel_W) > 0 and t - self._accel_W.t[0] >= 0.99 * p.excitation_window_s
         if not window_full:
             return
-        gyro = np.array([g for _, g, _ in self._imu])
+        gyro = self._imu.x[:, :3]
         accel_rms = self._world_accel_rms()
         gyro_norm = float(np.mean(np.linalg.norm(gyro, axis=1)))
         low = accel_rms < p.min_accel_m_s2 and gyro_norm < p.min_gyro_norm_rad_s
@@ -336,8 +376,8 @@ class HealthMonitor:
 
     def _check_init(self, t_s: float, est: StateEstimate) -> None:
         p = self.params
-        if self._imu:
-            accel = np.array([a for _, _, a in self._imu])
+        if len(self._imu):
+            accel = self._imu.x[:, 3:]
             g_norm = float(np.mean(np.linalg.norm(accel, axis=1)))
             # Only meaningful when the window was still (std small): then |a| should read 9.81.
             still = float(np.max(np.std(accel, axis=0))) < 0.5
