@@ -465,7 +465,7 @@ def run_stream(
 
 
 def _start_in_flight(
-    est: MsckfEstimator, monitor: HealthMonitor, stream: Stream
+    est: MsckfEstimator | WindowEstimator, monitor: HealthMonitor, stream: Stream
 ) -> tuple[ImuSeries, list[CameraFrame]]:
     """Show the monitor the IMU up to ``stream.external_init``, start ``est`` there; return the rest."""
     init = stream.external_init
