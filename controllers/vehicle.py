@@ -1,6 +1,6 @@
 """Rigid-body and rotor parameters of a multirotor, as the controller and the mixer need them.
 
-The values are read from the MJCF by :func:`viotb.envs.vehicle.vehicle_params_from_model`; they are never
+The values are read from the MJCF by :func:`viotb.envs.sim.vehicle.vehicle_params_from_model`; they are never
 typed a second time here (cf. rotorpy ``vehicles/hummingbird_params.py``, but loaded rather than hard-coded).
 
 Rotor model: motor ``i`` at ``rotor_positions_B_m[i]`` (relative to the centre of mass, in B) produces a

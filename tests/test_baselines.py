@@ -39,7 +39,7 @@ def test_imu_only_dead_reckons_noise_free_imu_and_grows_covariance():
 
 
 def test_imu_only_initializes_statically_on_euroc():
-    from viotb.envs.euroc import read_euroc
+    from viotb.envs.data.euroc import read_euroc
 
     ds = read_euroc(EUROC.parent)
     est = ImuOnlyEstimator(ds.calib, ds.imu_noise)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from viotb.envs.camera_model import CameraModelParams, frame_schedule
+from viotb.envs.sim.camera_timing import CameraModelParams, frame_schedule
 
 
 def test_counts_and_stamps_without_offset():

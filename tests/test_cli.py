@@ -6,7 +6,7 @@ import json
 
 import pytest
 from typer.testing import CliRunner
-from viotb.envs.cli import app
+from viotb.envs.tools.cli import app
 
 
 def _json(result) -> dict:

@@ -14,7 +14,7 @@ from viotb.controllers.se3 import SE3Controller, SE3Gains
 from viotb.controllers.setpoints import FigureEight, HoverPoint, Sequence, Takeoff
 from viotb.controllers.types import FlatOutput, NavState
 from viotb.controllers.vehicle import VehicleParams
-from viotb.envs.vehicle import nav_state_from_data, vehicle_params_from_model
+from viotb.envs.sim.vehicle import nav_state_from_data, vehicle_params_from_model
 from viotb.models import load_model
 from viotb.models.constants import HOVER_KEYFRAME
 from viotb.vio.lie import yaw_from_rotmat

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from viotb.envs.failures import (
+from viotb.envs.scenarios.failures import (
     FAILURES,
     StreamConfig,
     along_track_velocity_stats,
@@ -16,9 +16,9 @@ from viotb.envs.failures import (
     run_stream,
     synthesize_stream,
 )
-from viotb.envs.faults import SensorFaults
-from viotb.envs.fly import FLY_SCENARIOS
-from viotb.envs.scenarios import get_scenario
+from viotb.envs.sim.faults import SensorFaults
+from viotb.envs.run.fly import FLY_SCENARIOS
+from viotb.envs.scenarios.registry import get_scenario
 from viotb.vio.msckf import MsckfParams
 from viotb.vio.types import StateEstimate, TrajectoryArrays
 
@@ -330,9 +330,9 @@ def test_confident_wrong_start_is_named_divergence():
 
 
 def test_closed_loop_and_recorded_failures_follow_the_severity(tmp_path):
-    from viotb.envs.euroc import read_euroc  # noqa: PLC0415
-    from viotb.envs.failures import failure_fly_scenario, failure_record_scenario  # noqa: PLC0415
-    from viotb.envs.record import record_scenario  # noqa: PLC0415
+    from viotb.envs.data.euroc import read_euroc  # noqa: PLC0415
+    from viotb.envs.scenarios.failures import failure_fly_scenario, failure_record_scenario  # noqa: PLC0415
+    from viotb.envs.data.record import record_scenario  # noqa: PLC0415
     from viotb.vio.lie import log_so3  # noqa: PLC0415
 
     off = failure_fly_scenario("fly-fail-time-offset", 2.0).rig

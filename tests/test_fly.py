@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-from viotb.envs.closed_loop import ClosedLoopSim, RigConfig
-from viotb.envs.fly import FLY_SCENARIOS, fly
+from viotb.envs.run.closed_loop import ClosedLoopSim, RigConfig
+from viotb.envs.run.fly import FLY_SCENARIOS, fly
 
 
 def test_ground_truth_hover_holds_setpoint():

@@ -1,4 +1,4 @@
-"""Tests of viotb.envs.gym_envs: Gymnasium contracts, determinism, rewards, errors (mostly ground truth)."""
+"""Tests of viotb.envs.gym.base: Gymnasium contracts, determinism, rewards, errors (mostly ground truth)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import viotb.envs  # noqa: F401  (registers the ids)
 from gymnasium.utils.env_checker import check_env
-from viotb.envs.gym_envs import (
+from viotb.envs.gym.base import (
     ACTION_TYPES,
     DomainRandomization,
     HoverEnv,

@@ -8,7 +8,7 @@ import math
 import allantools
 import numpy as np
 import pytest
-from viotb.envs.imu_model import ImuModel, ImuModelParams, imu_preset, imu_preset_names
+from viotb.envs.sim.imu_model import ImuModel, ImuModelParams, imu_preset, imu_preset_names
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise
 
 

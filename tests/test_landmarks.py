@@ -5,8 +5,8 @@ import mujoco
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from viotb.envs.landmarks import project_landmarks, scene_landmarks
-from viotb.envs.sim import Simulation
+from viotb.envs.sim.landmarks import project_landmarks, scene_landmarks
+from viotb.envs.sim.simulation import Simulation
 from viotb.models import load_model
 from viotb.models.constants import ROOM_WALL_GEOMS
 from viotb.vio.camera import PinholeCamera

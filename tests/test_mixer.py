@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from viotb.controllers.mixer import Mixer
 from viotb.controllers.vehicle import VehicleParams
-from viotb.envs.vehicle import vehicle_params_from_model
+from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.models import load_model
 
 

@@ -167,7 +167,7 @@ def test_monte_carlo_average_nees_within_chi2_band():
 
 
 def _feed_euroc(est: MsckfEstimator, params_note: str = ""):
-    from viotb.envs.euroc import load_image, read_euroc
+    from viotb.envs.data.euroc import load_image, read_euroc
 
     ds = read_euroc(EUROC.parent)
     i = 0
@@ -185,7 +185,7 @@ def _feed_euroc(est: MsckfEstimator, params_note: str = ""):
 
 
 def test_euroc_static_start_stays_put_with_klt():
-    from viotb.envs.euroc import read_euroc
+    from viotb.envs.data.euroc import read_euroc
 
     ds = read_euroc(EUROC.parent)
     est = MsckfEstimator(ds.calib, ds.imu_noise, MsckfParams(frontend="klt"))

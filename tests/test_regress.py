@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from viotb.envs.regress import DEFAULT_BASELINE, compare, load_baseline, run_suite, write_baseline
+from viotb.envs.tools.regress import DEFAULT_BASELINE, compare, load_baseline, run_suite, write_baseline
 from viotb.vio.msckf import MsckfParams
 
 
@@ -57,7 +57,7 @@ def test_fails_on_perturbed_baseline_and_bad_files(hover_result, tmp_path):
 
 
 def test_short_run_is_compared_on_the_short_cases_only(hover_result, tmp_path):
-    from viotb.envs.regress import IMAGE_CASES, case_names, regress  # noqa: PLC0415
+    from viotb.envs.tools.regress import IMAGE_CASES, case_names, regress  # noqa: PLC0415
 
     base = load_baseline(DEFAULT_BASELINE)
     # The committed baseline holds the full set, image cases included.

@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from viotb.envs import render as render_mod
-from viotb.envs import sim as sim_mod
-from viotb.envs.render import (
+from viotb.envs.sim import render as render_mod
+from viotb.envs.sim import simulation as sim_mod
+from viotb.envs.sim.render import (
     OffscreenRenderer,
     camera_calibration,
     camera_extrinsics,
@@ -19,7 +19,7 @@ from viotb.envs.render import (
     rgb_to_gray,
     select_gl_backend,
 )
-from viotb.envs.sim import Simulation
+from viotb.envs.sim.simulation import Simulation
 from viotb.models import _assets
 from viotb.models.constants import HOVER_KEYFRAME, ONBOARD_CAMERA, QUAD_BODY, QUADROTOR_XML
 
@@ -215,7 +215,7 @@ def test_chase_camera_renders_the_drone(room):
 
 
 def test_bench_render_smoke():
-    from viotb.envs.bench_render import bench_render
+    from viotb.envs.tools.bench_render import bench_render
 
     result = bench_render(repeats=1, frames=1, physics_steps=10)
     for key in ("render_gray_ms_320x240", "render_gray_ms_640x480", "render_depth_ms_320x240"):

@@ -6,8 +6,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-from viotb.envs.scenarios import Scenario, get_scenario, list_scenarios, register
-from viotb.envs.trajectories import Trajectory
+from viotb.envs.scenarios.registry import Scenario, get_scenario, list_scenarios, register
+from viotb.envs.scenarios.motions import Trajectory
 
 REQUIRED = (
     "hover",
@@ -85,7 +85,7 @@ def test_scenario_is_frozen():
 
 
 def test_sensor_faults_told_calibration_and_imu_input():
-    from viotb.envs.faults import SensorFaults  # noqa: PLC0415
+    from viotb.envs.sim.faults import SensorFaults  # noqa: PLC0415
     from viotb.vio.camera import CameraCalibration, PinholeCamera  # noqa: PLC0415
     from viotb.vio.lie import log_so3  # noqa: PLC0415
 

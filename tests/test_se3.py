@@ -9,7 +9,7 @@ from viotb.controllers.se3 import SE3Controller, SE3Gains, attitude_error, desir
 from viotb.controllers.setpoints import FigureEight
 from viotb.controllers.types import FlatOutput, NavState, PositionController
 from viotb.controllers.vehicle import VehicleParams
-from viotb.envs.vehicle import vehicle_params_from_model
+from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.models import load_model
 
 

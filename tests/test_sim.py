@@ -4,7 +4,7 @@ import mujoco
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from viotb.envs.sim import Simulation, sensor_data, sensor_slice
+from viotb.envs.sim.simulation import Simulation, sensor_data, sensor_slice
 from viotb.models.constants import ACCEL_SENSOR, GYRO_SENSOR, HOME_KEYFRAME, HOVER_KEYFRAME
 from viotb.vio.types import GRAVITY_M_S2, gravity_W
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from viotb.envs.trajectories import (
+from viotb.envs.scenarios.motions import (
     TRAJECTORY_FACTORIES,
     MotionParams,
     ScriptedTrajectory,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from viotb.envs.tum import read_tum, write_tum
+from viotb.envs.data.tum import read_tum, write_tum
 from viotb.vio.types import TrajectoryArrays
 
 

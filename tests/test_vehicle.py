@@ -1,4 +1,4 @@
-"""Tests for viotb.controllers.vehicle and viotb.envs.vehicle (parameters and truth read from the MJCF)."""
+"""Tests for viotb.controllers.vehicle and viotb.envs.sim.vehicle (parameters and truth read from the MJCF)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from viotb.controllers.vehicle import VehicleParams
-from viotb.envs.vehicle import nav_state_from_data, vehicle_params_from_model
+from viotb.envs.sim.vehicle import nav_state_from_data, vehicle_params_from_model
 from viotb.models import load_model
 from viotb.models.constants import (
     GYRO_SENSOR,

@@ -142,7 +142,7 @@ def test_retract_boxminus_roundtrip():
 
 # ------------------------------------------------------------------------------------- the estimator
 def _stream(seed: int, seconds: float):
-    from viotb.envs.failures import StreamConfig, synthesize_stream
+    from viotb.envs.scenarios.failures import StreamConfig, synthesize_stream
 
     return synthesize_stream(StreamConfig(motion="figure8", seconds=seconds, landmark_count=600), seed)
 
@@ -176,7 +176,7 @@ def test_window_figure8_accuracy_against_msckf():
     Also checks the window stays bounded (marginalization runs), no divergence, and a symmetric
     positive-definite reported covariance.
     """
-    from viotb.envs.failures import run_stream
+    from viotb.envs.scenarios.failures import run_stream
 
     stream = _stream(0, 8.0)
     est, ate, info = _run_window(stream)
@@ -272,7 +272,7 @@ MICRO = Path("/work/shared/data/euroc_v1_01_micro")
 
 def _euroc_drift_m(params: WindowParams) -> tuple[float, int]:
     """Largest position change (m) of the estimates over the still EuRoC micro cut (KLT on real images)."""
-    from viotb.envs.euroc import load_image, read_euroc
+    from viotb.envs.data.euroc import load_image, read_euroc
     from viotb.vio.types import CameraFrame
 
     ds = read_euroc(MICRO)
@@ -314,7 +314,7 @@ def test_window_figure8_multi_seed_against_msckf():
     Measured (window / MSCKF, cm): 1.8/2.1, 1.6/2.5, 2.6/2.6, 1.3/1.8, 1.4/1.7, 1.5/2.2, 1.5/1.5, 1.2/1.8;
     mean 1.6 vs 2.0.
     """
-    from viotb.envs.failures import run_stream
+    from viotb.envs.scenarios.failures import run_stream
 
     ates, ates_msckf = [], []
     for seed in range(8):

@@ -21,7 +21,7 @@ named conditions (lesson 000, "VIO fails in characteristic, recognizable ways"):
    consistent value 1 ("worsens with speed -> time-sync / extrinsics"). A camera-IMU time offset ``dt``
    moves the features by ``~ f (|omega| + |v| / Z) dt`` and a rotation error of the extrinsics rotates
    every ray; both vanish at rest, hence the motion gate. The two causes are *not* told apart: measured on
-   the figure-8 streams of :mod:`viotb.envs.failures`, the Pearson correlation over the window between the
+   the figure-8 streams of :mod:`viotb.envs.scenarios.failures`, the Pearson correlation over the window between the
    NIS and the angular or linear speed is near zero or negative for both (the filter absorbs the part of
    the error that is constant over its window -- a time offset on uniform motion is a rigid shift of the
    trajectory -- and what is left follows the *changes* of the motion), so the correlations are only
@@ -56,7 +56,7 @@ named conditions (lesson 000, "VIO fails in characteristic, recognizable ways"):
    0.06 deg.
 
 :func:`monitor_run` replays an IMU series and camera frames through an estimator with a monitor attached
-(the loop of ``viotb.envs.evaluate.run_estimator``).
+(the loop of ``viotb.envs.data.evaluate.run_estimator``).
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.closed_loop import ClosedLoopSim
-from viotb.envs.fly import FlightLog
+from viotb.envs.run.closed_loop import ClosedLoopSim
+from viotb.envs.run.fly import FlightLog
 
 
 def save_plots(log: FlightLog, out_dir: Path) -> list[Path]:
@@ -104,7 +104,7 @@ class RerunRecorder:
         self._ticks = 0
 
     def __call__(self, loop: ClosedLoopSim, log: FlightLog) -> None:
-        """The ``on_tick`` hook of :func:`viotb.envs.fly.fly`."""
+        """The ``on_tick`` hook of :func:`viotb.envs.run.fly.fly`."""
         rr, rec = self._rr, self._rec
         self._ticks += 1
         rec.set_time("sim_time", duration=float(loop.t_s))

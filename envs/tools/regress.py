@@ -1,6 +1,6 @@
 """Drift regression suite (``viotb regress``): fixed seeded runs compared with a committed baseline.
 
-Short set (default): in-memory open-loop streams of :mod:`viotb.envs.failures` (hover, circle, line; no
+Short set (default): in-memory open-loop streams of :mod:`viotb.envs.scenarios.failures` (hover, circle, line; no
 rendering) evaluated with the MSCKF and the simulated front end, plus one closed-loop ``fly-hover`` with the
 simulated front end. ``full`` adds a fast circle and the 60 s long loop (simulated features), and the image
 path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``) and a 20 s
@@ -26,11 +26,11 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.failures import StreamConfig, run_stream, synthesize_stream
+from viotb.envs.scenarios.failures import StreamConfig, run_stream, synthesize_stream
 from viotb.vio.metrics import align_umeyama
 from viotb.vio.msckf import MsckfParams
 
-DEFAULT_BASELINE = Path(__file__).resolve().parent.parent / "benchmarks" / "regress_baseline.json"
+DEFAULT_BASELINE = Path(__file__).resolve().parents[2] / "benchmarks" / "regress_baseline.json"
 """The committed baseline."""
 
 TOLERANCES = {
@@ -117,8 +117,8 @@ def _recording_case(seed: int, ref_ms: float) -> dict:
     """``figure8`` rendered for 12 s, replayed through the MSCKF with the KLT front end."""
     import tempfile  # noqa: PLC0415
 
-    from viotb.envs.evaluate import EvalOptions, evaluate_dataset  # noqa: PLC0415
-    from viotb.envs.record import record_scenario  # noqa: PLC0415
+    from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset  # noqa: PLC0415
+    from viotb.envs.data.record import record_scenario  # noqa: PLC0415
 
     with tempfile.TemporaryDirectory(prefix="viotb-regress-") as tmp:
         record_scenario("figure8", tmp, seed=seed, seconds=12.0)
@@ -135,7 +135,7 @@ def _recording_case(seed: int, ref_ms: float) -> dict:
 
 
 def _fly_case(seed: int, ref_ms: float, frontend: str = "sim", seconds: float = 15.0) -> dict:
-    from viotb.envs.fly import fly  # noqa: PLC0415
+    from viotb.envs.run.fly import fly  # noqa: PLC0415
 
     t0 = time.perf_counter()
     # 15 s: ground init, takeoff and the excitation manoeuvre the filter asks for leave ~4 s of hover.

@@ -1,7 +1,7 @@
 """Gymnasium environments with VIO in the loop: a quadrotor policy that sees the estimate, not the truth.
 
 Three tasks share one base class (:class:`VioQuadEnv`); each env holds only its task logic (targets, a
-success test) on top of :class:`~viotb.envs.closed_loop.ClosedLoopSim`, which runs physics, IMU, camera and
+success test) on top of :class:`~viotb.envs.run.closed_loop.ClosedLoopSim`, which runs physics, IMU, camera and
 estimator in lockstep (cf. dm_control's physics/task split and Gymnasium ``envs/mujoco/hopper_v5.py``):
 
 * :class:`HoverEnv` (``viotb/Hover-v0``): hold a point against wind gusts.
@@ -29,11 +29,11 @@ import numpy as np
 from gymnasium import spaces
 from viotb.controllers import FigureEight, Mixer, SE3Controller, SE3Gains, Takeoff
 from viotb.controllers.types import FlatOutput, NavState
-from viotb.envs.camera_model import CameraModelParams
-from viotb.envs.closed_loop import ClosedLoopSim, RigConfig, WindParams
-from viotb.envs.imu_model import ImuModel, imu_preset, imu_preset_names
-from viotb.envs.sim import Simulation
-from viotb.envs.vehicle import vehicle_params_from_model
+from viotb.envs.sim.camera_timing import CameraModelParams
+from viotb.envs.run.closed_loop import ClosedLoopSim, RigConfig, WindParams
+from viotb.envs.sim.imu_model import ImuModel, imu_preset, imu_preset_names
+from viotb.envs.sim.simulation import Simulation
+from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.models.constants import CHASE_CAMERA, ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
 from viotb.vio.factory import ESTIMATOR_NAMES, FRONTEND_NAMES
 from viotb.vio.initialization import InitResult
@@ -126,7 +126,7 @@ class VioEnvConfig:
         estimator: One of ``viotb.vio.factory.ESTIMATOR_NAMES`` (``msckf``, ``window``, ``imu-only``,
             ``ground-truth``).
         frontend: ``sim`` (projected landmarks, fast) or ``klt`` (OpenCV on rendered images).
-        imu_preset: IMU model preset (``viotb.envs.imu_model.imu_preset_names()``).
+        imu_preset: IMU model preset (``viotb.envs.sim.imu_model.imu_preset_names()``).
         scene: Scene name (``viotb.models.constants.SCENE_XMLS``).
         camera_width: Onboard image width (px).
         camera_height: Onboard image height (px).
@@ -815,7 +815,7 @@ class VioQuadEnv(gymnasium.Env):
         if self._loop is None:
             raise RuntimeError("call reset() before render()")
         if self._renderer is None:
-            from viotb.envs.render import OffscreenRenderer
+            from viotb.envs.sim.render import OffscreenRenderer
 
             self._renderer = OffscreenRenderer(
                 self._loop.sim.model, self.config.render_width, self.config.render_height, camera

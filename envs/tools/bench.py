@@ -3,7 +3,7 @@
 Figures are medians over repeats (software GL has a slow mode about one run in ten) and real-time factors
 (simulated seconds per wall second), so they read as ratios on a noisy machine. Sections:
 
-- ``render``: render ms/frame at 320x240 and 640x480, physics steps/s (:mod:`viotb.envs.bench_render`);
+- ``render``: render ms/frame at 320x240 and 640x480, physics steps/s (:mod:`viotb.envs.tools.bench_render`);
 - ``record``: real-time factor of ``viotb record figure8`` (320x240, 20 Hz camera, 200 Hz IMU);
 - ``estimator``: MSCKF median / p99 ms per frame (KLT tracking + update) on that recording;
 - ``closed_loop``: ``realtime_factor`` of ``viotb fly fly-hover`` with the image front end and in sim mode.
@@ -47,14 +47,14 @@ def run_bench(
     with tempfile.TemporaryDirectory() as tmp:
         rec_dir = Path(tmp) / "figure8"
         if "render" in sections:
-            from viotb.envs.bench_render import bench_render
+            from viotb.envs.tools.bench_render import bench_render
 
             out["render"] = bench_render(repeats=max(repeats, 3))
         done += 1
         if progress:
             progress(done, len(SECTIONS))
         if "record" in sections or "estimator" in sections:
-            from viotb.envs.record import record_scenario
+            from viotb.envs.data.record import record_scenario
 
             rtfs = []
             for k in range(repeats if "record" in sections else 1):
@@ -65,7 +65,7 @@ def run_bench(
         if progress:
             progress(done, len(SECTIONS))
         if "estimator" in sections:
-            from viotb.envs.evaluate import EvalOptions, evaluate_dataset
+            from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 
             ev = evaluate_dataset(rec_dir, Path(tmp) / "eval", EvalOptions("msckf", "klt"))
             out["estimator"] = {
@@ -75,7 +75,7 @@ def run_bench(
         if progress:
             progress(done, len(SECTIONS))
         if "closed_loop" in sections:
-            from viotb.envs.fly import fly
+            from viotb.envs.run.fly import fly
 
             cl = {}
             for frontend in ("klt", "sim"):

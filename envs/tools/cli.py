@@ -66,8 +66,8 @@ def _fail(message: str) -> None:
 @app.command()
 def scenarios(as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout.")) -> None:
     """List the scenarios with one-line descriptions."""
-    import viotb.envs.fly  # noqa: F401  (registers the closed-loop scenarios)
-    from viotb.envs.scenarios import list_scenarios
+    import viotb.envs.run.fly  # noqa: F401  (registers the closed-loop scenarios)
+    from viotb.envs.scenarios.registry import list_scenarios
 
     items = list_scenarios()
     if as_json:
@@ -89,7 +89,7 @@ def record(
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Simulate a scenario open loop and write a EuRoC ASL dataset."""
-    from viotb.envs.record import record_scenario
+    from viotb.envs.data.record import record_scenario
 
     if seconds is not None and seconds <= 0:
         _fail(f"--seconds must be positive, got {seconds}")
@@ -112,7 +112,7 @@ def eval_(
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Run an estimator on a EuRoC folder, write TUM trajectories and print ATE/RPE/NEES/timing."""
-    from viotb.envs.evaluate import EvalOptions, evaluate_dataset
+    from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 
     opts = EvalOptions(estimator=estimator, frontend=frontend, max_frames=max_frames)
     try:
@@ -138,7 +138,7 @@ def fly(
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Fly a closed-loop scenario with the estimator in the loop."""
-    from viotb.envs.fly import fly as run_fly
+    from viotb.envs.run.fly import fly as run_fly
 
     if seconds is not None and seconds <= 0:
         _fail(f"--seconds must be positive, got {seconds}")
@@ -149,7 +149,7 @@ def fly(
     except ValueError as exc:
         _fail(str(exc))
     if out is not None:
-        from viotb.envs.viz import save_plots
+        from viotb.envs.tools.viz import save_plots
 
         out.mkdir(parents=True, exist_ok=True)
         result["plots"] = [str(p) for p in save_plots(log, out)]
@@ -166,8 +166,8 @@ def demo(
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """The default closed-loop VIO flight, with PNG plots and a rerun recording."""
-    from viotb.envs.fly import fly as run_fly
-    from viotb.envs.viz import RerunRecorder, save_plots
+    from viotb.envs.run.fly import fly as run_fly
+    from viotb.envs.tools.viz import RerunRecorder, save_plots
 
     out.mkdir(parents=True, exist_ok=True)
     recorder = RerunRecorder(out / "demo.rrd")
@@ -198,7 +198,7 @@ def bench(
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Speed benchmarks: render ms/frame, physics steps/s, record/closed-loop real-time factors."""
-    from viotb.envs.bench import SECTIONS, run_bench
+    from viotb.envs.tools.bench import SECTIONS, run_bench
 
     try:
         with _progress("bench", not as_json) as progress:
@@ -217,8 +217,8 @@ def regress(
 ) -> None:
     """Drift regression suite: seeded runs vs the committed baseline; exits 1 on a regression."""
     from rich.table import Table
-    from viotb.envs.regress import DEFAULT_BASELINE
-    from viotb.envs.regress import regress as run_regress
+    from viotb.envs.tools.regress import DEFAULT_BASELINE
+    from viotb.envs.tools.regress import regress as run_regress
 
     path = baseline if baseline is not None else DEFAULT_BASELINE
     try:
@@ -250,7 +250,7 @@ def failures(
 ) -> None:
     """Run each failure mode and its fix: error-vs-time plot, what the monitor said and when, the fix."""
     from rich.table import Table
-    from viotb.envs.failures import FAILURES, failure_report
+    from viotb.envs.scenarios.failures import FAILURES, failure_report
 
     names = list(name) if name else list(FAILURES)
     unknown = [n for n in names if n not in FAILURES]

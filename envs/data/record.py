@@ -20,10 +20,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.camera_model import frame_schedule
-from viotb.envs.euroc import write_euroc
-from viotb.envs.imu_model import ImuModel, imu_preset
-from viotb.envs.scenarios import get_scenario
+from viotb.envs.sim.camera_timing import frame_schedule
+from viotb.envs.data.euroc import write_euroc
+from viotb.envs.sim.imu_model import ImuModel, imu_preset
+from viotb.envs.scenarios.registry import get_scenario
 from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
@@ -48,7 +48,7 @@ def record_scenario(
         seed: Seed of every random component (same seed, byte-identical output).
         seconds: Duration (s); the scenario default when None.
         progress: Optional callback ``(done, total)`` called after each rendered frame.
-        severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.failures``); None = default.
+        severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.scenarios.failures``); None = default.
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
@@ -58,15 +58,15 @@ def record_scenario(
         ValueError: Unknown scenario, a scenario without a scripted trajectory, or a bad duration.
     """
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from viotb.envs.landmarks import scene_landmarks  # noqa: PLC0415 (imports mujoco)
-    from viotb.envs.render import OffscreenRenderer, camera_calibration  # noqa: PLC0415
-    from viotb.envs.sim import Simulation  # noqa: PLC0415
+    from viotb.envs.sim.landmarks import scene_landmarks  # noqa: PLC0415 (imports mujoco)
+    from viotb.envs.sim.render import OffscreenRenderer, camera_calibration  # noqa: PLC0415
+    from viotb.envs.sim.simulation import Simulation  # noqa: PLC0415
 
     wall_start = time.perf_counter()
     if severity is None:
         scenario = get_scenario(name)
     else:
-        from viotb.envs.failures import failure_record_scenario  # noqa: PLC0415
+        from viotb.envs.scenarios.failures import failure_record_scenario  # noqa: PLC0415
 
         scenario = failure_record_scenario(name, severity)
     if seconds is not None and not (np.isfinite(seconds) and seconds > 0.0):

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
-from viotb.envs.render import camera_world_pose
+from viotb.envs.sim.render import camera_world_pose
 from viotb.models import load_model
 from viotb.models.constants import (
     ACCEL_SENSOR,

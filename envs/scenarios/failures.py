@@ -2,8 +2,8 @@
 
 Each :class:`FailureSpec` is registered three ways:
 
-* as an open-loop ``record`` scenario (``viotb record fail-...``) in :mod:`viotb.envs.scenarios`,
-* as a closed-loop :class:`~viotb.envs.fly.FlyScenario` in ``FLY_SCENARIOS`` where the rig can express it
+* as an open-loop ``record`` scenario (``viotb record fail-...``) in :mod:`viotb.envs.scenarios.registry`,
+* as a closed-loop :class:`~viotb.envs.run.fly.FlyScenario` in ``FLY_SCENARIOS`` where the rig can express it
   (:func:`failure_fly_scenarios`),
 * and as a fast in-memory stream (:func:`synthesize_stream`: scripted truth -> IMU model -> projected scene
   landmarks, no rendering) that :func:`failure_report` runs through the MSCKF with a
@@ -24,11 +24,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.camera_model import CameraModelParams
-from viotb.envs.faults import SensorFaults
-from viotb.envs.imu_model import ImuModel, imu_preset
-from viotb.envs.scenarios import Scenario, is_registered, register
-from viotb.envs.trajectories import TRAJECTORY_FACTORIES, MotionParams, Trajectory
+from viotb.envs.sim.camera_timing import CameraModelParams
+from viotb.envs.sim.faults import SensorFaults
+from viotb.envs.sim.imu_model import ImuModel, imu_preset
+from viotb.envs.scenarios.registry import Scenario, is_registered, register
+from viotb.envs.scenarios.motions import TRAJECTORY_FACTORIES, MotionParams, Trajectory
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.health import HealthMonitor, HealthParams, MonitoredRun, monitor_run
 from viotb.vio.initialization import InitResult
@@ -56,7 +56,7 @@ class StreamConfig:
         still_s: Seconds at rest before the motion (for static initialization).
         camera_rate_hz: Frame rate (Hz).
         time_offset_s: True clock offset, ``t_imu = t_cam + offset`` (s).
-        faults: Calibration / IMU errors (:class:`~viotb.envs.faults.SensorFaults`).
+        faults: Calibration / IMU errors (:class:`~viotb.envs.sim.faults.SensorFaults`).
         landmark_count: Landmarks in the scene.
         blackout_s: Camera blackout interval (start, end) in seconds of stream time, or None.
         pixel_sigma_px: Pixel noise (px) of the projected features.
@@ -129,8 +129,8 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
         raise ValueError(f"StreamConfig.motion: unknown motion {cfg.motion!r}; known: {known}")
     if not cfg.seconds > 0.0:
         raise ValueError(f"StreamConfig.seconds must be > 0, got {cfg.seconds}")
-    from viotb.envs.landmarks import project_landmarks, scene_landmarks  # noqa: PLC0415 (imports mujoco)
-    from viotb.envs.render import camera_calibration  # noqa: PLC0415
+    from viotb.envs.sim.landmarks import project_landmarks, scene_landmarks  # noqa: PLC0415 (imports mujoco)
+    from viotb.envs.sim.render import camera_calibration  # noqa: PLC0415
     from viotb.models import load_model  # noqa: PLC0415
     from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES  # noqa: PLC0415
 
@@ -334,8 +334,8 @@ def failure_fly_scenarios(severity: float = 1.0) -> dict:
     streams (the IMU faults, the clock offset, the extrinsic error; the blackout lasts ``3 x severity`` s);
     the others do not depend on it.
     """
-    from viotb.envs.closed_loop import RigConfig  # noqa: PLC0415
-    from viotb.envs.fly import FlyScenario  # noqa: PLC0415
+    from viotb.envs.run.closed_loop import RigConfig  # noqa: PLC0415
+    from viotb.envs.run.fly import FlyScenario  # noqa: PLC0415
 
     sev = float(severity)
     offset = FAILURES["fail-time-offset"].config(sev)
@@ -387,8 +387,8 @@ def failure_fly_scenario(name: str, severity: float = 1.0) -> object:
 
 
 def register_fly_failures() -> None:
-    """Add :func:`failure_fly_scenarios` to ``viotb.envs.fly.FLY_SCENARIOS`` and the shared registry."""
-    from viotb.envs import fly  # noqa: PLC0415
+    """Add :func:`failure_fly_scenarios` to ``viotb.envs.run.fly.FLY_SCENARIOS`` and the shared registry."""
+    from viotb.envs.run import fly  # noqa: PLC0415
 
     for name, sc in failure_fly_scenarios().items():
         fly.FLY_SCENARIOS.setdefault(name, sc)

@@ -1,6 +1,6 @@
 """Lockstep closed-loop core: physics, IMU, camera and estimator advanced together in timestamp order.
 
-One :class:`ClosedLoopSim` owns a :class:`~viotb.envs.sim.Simulation`, the IMU and camera sensor models, an
+One :class:`ClosedLoopSim` owns a :class:`~viotb.envs.sim.simulation.Simulation`, the IMU and camera sensor models, an
 offscreen renderer (image front end) or the landmark projector (``sim`` fast mode), and an estimator chosen by
 name. Callers (the ``viotb fly`` runner and the Gymnasium envs) hold motor thrusts for one control period with
 :meth:`ClosedLoopSim.advance`; inside it:
@@ -25,11 +25,11 @@ from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
-from viotb.envs.camera_model import CameraModelParams
-from viotb.envs.faults import SensorFaults
-from viotb.envs.imu_model import ImuModel, imu_preset
-from viotb.envs.render import OffscreenRenderer, camera_calibration
-from viotb.envs.sim import Simulation
+from viotb.envs.sim.camera_timing import CameraModelParams
+from viotb.envs.sim.faults import SensorFaults
+from viotb.envs.sim.imu_model import ImuModel, imu_preset
+from viotb.envs.sim.render import OffscreenRenderer, camera_calibration
+from viotb.envs.sim.simulation import Simulation
 from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
 from viotb.vio.factory import make_estimator
 from viotb.vio.msckf import MsckfParams
@@ -60,7 +60,7 @@ class RigConfig:
         scene: Scene name (``viotb.models.constants.SCENE_XMLS``).
         estimator: ``msckf``, ``imu-only`` or ``ground-truth``.
         frontend: ``klt`` (OpenCV on rendered images) or ``sim`` (projected landmarks, fast mode).
-        imu_preset: IMU model preset name (``viotb.envs.imu_model``).
+        imu_preset: IMU model preset name (``viotb.envs.sim.imu_model``).
         camera: Camera model (rate, resolution, clock offset, latency, drops, blackouts, pixel noise).
         start_p_W_m: Start position of the body on the ground (m), shape (3,).
         start_yaw_rad: Start heading (rad).
@@ -69,7 +69,7 @@ class RigConfig:
         render_images: Render the onboard camera even in ``sim`` mode (for image observations / recordings).
         imu_fault_at_s: From this time on (s) the IMU outputs NaN on every axis: a failed sensor, used to test
             how an estimator and the runner behave when the estimate becomes unusable; None = healthy.
-        faults: Calibration / IMU errors (:class:`~viotb.envs.faults.SensorFaults`): what the estimator is
+        faults: Calibration / IMU errors (:class:`~viotb.envs.sim.faults.SensorFaults`): what the estimator is
             told and fed, not the truth.
         online_calibration: Estimate the time offset and the extrinsics online (MSCKF,
             :meth:`~viotb.vio.msckf.MsckfParams.with_online_calibration`).
@@ -170,7 +170,7 @@ class ClosedLoopSim:
         )
         self.landmarks_W = None
         if config.frontend == "sim":
-            from viotb.envs.landmarks import scene_landmarks
+            from viotb.envs.sim.landmarks import scene_landmarks
 
             self.landmarks_W = scene_landmarks(self.sim.model, self._rng_lm)
         self._blackouts = tuple(cam.blackout_intervals_s)
@@ -254,7 +254,7 @@ class ClosedLoopSim:
         image = self.renderer.render_gray(self.sim.data) if self.renderer is not None else None
         features = None
         if self.config.frontend == "sim":
-            from viotb.envs.landmarks import project_landmarks
+            from viotb.envs.sim.landmarks import project_landmarks
 
             R_WC, p_WC = self.sim.camera_pose()
             features = project_landmarks(

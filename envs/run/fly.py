@@ -1,6 +1,6 @@
 """Closed-loop flights: a quadrotor that initializes on the ground, takes off and flies on its own VIO.
 
-The runner (``viotb fly``) is a small phase machine on top of :class:`~viotb.envs.closed_loop.ClosedLoopSim`:
+The runner (``viotb fly``) is a small phase machine on top of :class:`~viotb.envs.run.closed_loop.ClosedLoopSim`:
 
 1. ``ground``: motors off; the estimator initializes statically from the IMU (and sees the camera) while the
    drone sits still. No truth is read by the control path after t = 0.
@@ -32,9 +32,9 @@ from viotb.controllers.setpoints import (
     Waypoints,
 )
 from viotb.controllers.types import FlatOutput, NavState
-from viotb.envs.camera_model import CameraModelParams
-from viotb.envs.closed_loop import ClosedLoopSim, RigConfig, WindParams
-from viotb.envs.vehicle import vehicle_params_from_model
+from viotb.envs.sim.camera_timing import CameraModelParams
+from viotb.envs.run.closed_loop import ClosedLoopSim, RigConfig, WindParams
+from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
 
@@ -118,7 +118,7 @@ FLY_SCENARIOS = _fly_scenarios()
 
 def _register_fly_scenarios() -> None:
     """List the closed-loop scenarios in the shared registry (``viotb scenarios``) as kind ``fly``."""
-    from viotb.envs.scenarios import Scenario, is_registered, register
+    from viotb.envs.scenarios.registry import Scenario, is_registered, register
 
     for sc in list(FLY_SCENARIOS.values()):
         if not is_registered(sc.name):
@@ -146,7 +146,7 @@ def get_fly_scenario(name: str) -> FlyScenario:
         ValueError: Unknown name (lists the known ones).
     """
     if name not in FLY_SCENARIOS:
-        import viotb.envs.failures  # noqa: F401, PLC0415 (registers the fly-fail-* scenarios)
+        import viotb.envs.scenarios.failures  # noqa: F401, PLC0415 (registers the fly-fail-* scenarios)
     if name not in FLY_SCENARIOS:
         raise ValueError(f"unknown closed-loop scenario {name!r}; known: {sorted(FLY_SCENARIOS)}")
     return FLY_SCENARIOS[name]
@@ -245,7 +245,7 @@ def fly(
         online_calibration: Estimate the camera-IMU time offset and extrinsics online (overrides the
             scenario's rig when not None).
         severity: For a ``fly-fail-*`` scenario with a knob, its severity
-            (``viotb.envs.failures.failure_fly_scenario``); None = the registered default.
+            (``viotb.envs.scenarios.failures.failure_fly_scenario``); None = the registered default.
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -257,7 +257,7 @@ def fly(
     if severity is None:
         sc = get_fly_scenario(scenario)
     else:
-        from viotb.envs.failures import failure_fly_scenario  # noqa: PLC0415
+        from viotb.envs.scenarios.failures import failure_fly_scenario  # noqa: PLC0415
 
         sc = failure_fly_scenario(scenario, severity)
     total_s = sc.default_seconds if seconds is None else float(seconds)

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.euroc import EurocDataset, load_image, read_euroc
-from viotb.envs.tum import write_tum
+from viotb.envs.data.euroc import EurocDataset, load_image, read_euroc
+from viotb.envs.data.tum import write_tum
 from viotb.vio.factory import make_estimator
 from viotb.vio.lie import quat_wxyz_to_rotmat, rotmat_to_quat_wxyz
 from viotb.vio.metrics import evaluate_trajectory
@@ -71,7 +71,7 @@ def _frame(ds: EurocDataset, i: int, opts: EvalOptions, rng: np.random.Generator
     t_cam = float(ds.cam_t_s[i])
     if opts.frontend != "sim":
         return CameraFrame(t_s=t_cam, image=load_image(ds, i))
-    from viotb.envs.landmarks import project_landmarks
+    from viotb.envs.sim.landmarks import project_landmarks
 
     if ds.landmarks_W is None or ds.groundtruth is None:
         raise ValueError(

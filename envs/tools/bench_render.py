@@ -1,6 +1,6 @@
 """Benchmark of the simulator: offscreen render time per frame and physics steps per second.
 
-Run ``python -m viotb.envs.bench_render`` to print one JSON object. Software GL has a slow mode in about
+Run ``python -m viotb.envs.tools.bench_render`` to print one JSON object. Software GL has a slow mode in about
 one run out of ten, so every figure is the median over ``repeats`` timed batches.
 """
 
@@ -11,8 +11,8 @@ import os
 import time
 
 import numpy as np
-from viotb.envs.render import OffscreenRenderer
-from viotb.envs.sim import Simulation
+from viotb.envs.sim.render import OffscreenRenderer
+from viotb.envs.sim.simulation import Simulation
 from viotb.models.constants import HOVER_KEYFRAME
 
 RENDER_SIZES = ((320, 240), (640, 480))

@@ -9,10 +9,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from viotb.envs.camera_model import CameraModelParams
-from viotb.envs.faults import SensorFaults
-from viotb.envs.imu_model import imu_preset
-from viotb.envs.trajectories import TRAJECTORY_FACTORIES, MotionParams, StillStart, Trajectory
+from viotb.envs.sim.camera_timing import CameraModelParams
+from viotb.envs.sim.faults import SensorFaults
+from viotb.envs.sim.imu_model import imu_preset
+from viotb.envs.scenarios.motions import TRAJECTORY_FACTORIES, MotionParams, StillStart, Trajectory
 from viotb.models.constants import SCENE_XMLS, VEHICLE_XMLS
 
 SCENARIO_KINDS = ("record", "fly")
@@ -30,7 +30,7 @@ class Scenario:
         vehicle: ``"quadrotor"`` or ``"headset"`` (a key of ``models.constants.VEHICLE_XMLS``).
         scene: Scene name (a key of ``models.constants.SCENE_XMLS``).
         default_seconds: Duration (s) when the user gives none.
-        imu_preset: Name for :func:`viotb.envs.imu_model.imu_preset`.
+        imu_preset: Name for :func:`viotb.envs.sim.imu_model.imu_preset`.
         camera: Camera timing/noise parameters.
         trajectory: Factory ``duration_s -> Trajectory`` (None for scenarios without a scripted motion).
         still_start_s: Rest at the first pose before the motion (s), inside the duration, so that a static
@@ -100,8 +100,8 @@ def is_registered(name: str) -> bool:
 
 def _load_registrants() -> None:
     """Import the modules that register more scenarios: closed-loop (``fly-*``) and failure (``fail-*``)."""
-    import viotb.envs.failures  # noqa: F401, PLC0415
-    import viotb.envs.fly  # noqa: F401, PLC0415
+    import viotb.envs.scenarios.failures  # noqa: F401, PLC0415
+    import viotb.envs.run.fly  # noqa: F401, PLC0415
 
 
 def get_scenario(name: str) -> Scenario:

@@ -1,0 +1,1 @@
+"""sim wing: the simulated world and its sensors (MuJoCo wrapper, renderer, IMU and camera timing, landmarks, faults)."""

@@ -1,0 +1,1 @@
+"""tools wing: the ``viotb`` command line, benchmarks, the regression suite, plots and reports."""
