@@ -37,7 +37,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import gymnasium
 import numpy as np
 import viotb.envs  # noqa: F401  (registers the ids)
-from viotb.envs.gym.base import FAILURE_REASONS, RewardWeights
+from viotb.envs.gym.config import FAILURE_REASONS, RewardWeights
 
 HEALTH_PREFIXES = ("var_p_m2", "var_v_m2_s2", "tracked_features")
 """State entries describing the estimator's health (dropped by :class:`KinematicObservation`)."""

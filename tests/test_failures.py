@@ -7,18 +7,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from viotb.envs.scenarios.failures import (
-    FAILURES,
-    StreamConfig,
-    along_track_velocity_stats,
-    anchored_position_error_m,
-    failure_report,
-    run_stream,
-    synthesize_stream,
-)
+from viotb.envs.run.failure_runner import along_track_velocity_stats, anchored_position_error_m, run_stream
+from viotb.envs.scenarios.failures import FAILURES
+from viotb.envs.scenarios.registry import fly_scenario_names, get_scenario
+from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
 from viotb.envs.sim.faults import SensorFaults
-from viotb.envs.run.fly import FLY_SCENARIOS
-from viotb.envs.scenarios.registry import get_scenario
+from viotb.envs.tools.failure_report import failure_report
 from viotb.vio.msckf import MsckfParams
 from viotb.vio.types import StateEstimate, TrajectoryArrays
 
@@ -26,7 +20,7 @@ from viotb.vio.types import StateEstimate, TrajectoryArrays
 def test_registered_open_and_closed_loop():
     for name in FAILURES:
         assert get_scenario(name).kind == "record"
-    assert "fly-fail-gyro-saturation" in FLY_SCENARIOS
+    assert "fly-fail-gyro-saturation" in fly_scenario_names()
     with pytest.raises(ValueError, match="severity"):
         FAILURES["fail-bad-init"].config(-1.0)
 
@@ -331,8 +325,8 @@ def test_confident_wrong_start_is_named_divergence():
 
 def test_closed_loop_and_recorded_failures_follow_the_severity(tmp_path):
     from viotb.envs.data.euroc import read_euroc  # noqa: PLC0415
-    from viotb.envs.scenarios.failures import failure_fly_scenario, failure_record_scenario  # noqa: PLC0415
     from viotb.envs.data.record import record_scenario  # noqa: PLC0415
+    from viotb.envs.scenarios.failures import failure_fly_scenario, failure_record_scenario
     from viotb.vio.lie import log_so3  # noqa: PLC0415
 
     off = failure_fly_scenario("fly-fail-time-offset", 2.0).rig

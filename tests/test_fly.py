@@ -2,8 +2,10 @@
 
 import numpy as np
 import pytest
-from viotb.envs.run.closed_loop import ClosedLoopSim, RigConfig
-from viotb.envs.run.fly import FLY_SCENARIOS, fly
+from viotb.envs.run.closed_loop import ClosedLoopSim
+from viotb.envs.run.fly import fly
+from viotb.envs.scenarios.registry import fly_scenario_names, get_fly_scenario
+from viotb.envs.sim.rig import RigConfig
 
 
 def test_ground_truth_hover_holds_setpoint():
@@ -71,9 +73,9 @@ def test_bad_inputs_are_named():
 
 
 def test_every_scenario_is_registered_with_a_description():
-    assert len(FLY_SCENARIOS) >= 8
-    for name, sc in FLY_SCENARIOS.items():
-        assert name.startswith("fly-") and sc.description
+    assert len(fly_scenario_names()) >= 8
+    for name in fly_scenario_names():
+        assert name.startswith("fly-") and get_fly_scenario(name).description
 
 
 def test_camera_blackout_coasts_on_imu_and_recovers():

@@ -1,4 +1,4 @@
-"""Tests of viotb.envs.gym.base: Gymnasium contracts, determinism, rewards, errors (mostly ground truth)."""
+"""Tests of viotb.envs.gym: Gymnasium contracts, determinism, rewards, errors (mostly ground truth)."""
 
 from __future__ import annotations
 
@@ -11,17 +11,10 @@ import numpy as np
 import pytest
 import viotb.envs  # noqa: F401  (registers the ids)
 from gymnasium.utils.env_checker import check_env
-from viotb.envs.gym.base import (
-    ACTION_TYPES,
-    DomainRandomization,
-    HoverEnv,
-    HoverEnvConfig,
-    cost_crash,
-    cost_effort,
-    cost_smoothness,
-    orientation_features,
-    reward_tracking,
-)
+from viotb.envs.gym.base import orientation_features
+from viotb.envs.gym.config import ACTION_TYPES, DomainRandomization, HoverEnvConfig
+from viotb.envs.gym.hover import HoverEnv
+from viotb.envs.gym.rewards import cost_crash, cost_effort, cost_smoothness, reward_tracking
 from viotb.vio.lie import exp_so3, rotmat_to_quat_wxyz
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*Box observation space (min|max)imum value:UserWarning")

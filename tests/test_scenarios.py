@@ -6,8 +6,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-from viotb.envs.scenarios.registry import Scenario, get_scenario, list_scenarios, register
 from viotb.envs.scenarios.motions import Trajectory
+from viotb.envs.scenarios.registry import Scenario, get_scenario, list_scenarios, register
 
 REQUIRED = (
     "hover",

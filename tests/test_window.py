@@ -142,14 +142,14 @@ def test_retract_boxminus_roundtrip():
 
 # ------------------------------------------------------------------------------------- the estimator
 def _stream(seed: int, seconds: float):
-    from viotb.envs.scenarios.failures import StreamConfig, synthesize_stream
+    from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
 
     return synthesize_stream(StreamConfig(motion="figure8", seconds=seconds, landmark_count=600), seed)
 
 
 def _run_window(stream) -> tuple[WindowEstimator, float, dict]:
     """Window estimator over a stream: (estimator, ATE after a yaw+translation alignment (m), run info)."""
-    from viotb.vio.health import monitor_run
+    from viotb.envs.run.replay import monitor_run
     from viotb.vio.metrics import align_umeyama
 
     est = WindowEstimator(stream.calib_given, stream.noise,
@@ -176,7 +176,7 @@ def test_window_figure8_accuracy_against_msckf():
     Also checks the window stays bounded (marginalization runs), no divergence, and a symmetric
     positive-definite reported covariance.
     """
-    from viotb.envs.scenarios.failures import run_stream
+    from viotb.envs.run.failure_runner import run_stream
 
     stream = _stream(0, 8.0)
     est, ate, info = _run_window(stream)
@@ -212,7 +212,7 @@ def test_divergence_reported_through_health_not_raised():
 
     Measured: every gated feature is an outlier from the fault on; declared at 3.6 s (5 keyframes later).
     """
-    from viotb.vio.health import monitor_run
+    from viotb.envs.run.replay import monitor_run
     from viotb.vio.types import Estimator, ImuSeries
 
     stream = _stream(0, 3.0)
@@ -314,7 +314,7 @@ def test_window_figure8_multi_seed_against_msckf():
     Measured (window / MSCKF, cm): 1.8/2.1, 1.6/2.5, 2.6/2.6, 1.3/1.8, 1.4/1.7, 1.5/2.2, 1.5/1.5, 1.2/1.8;
     mean 1.6 vs 2.0.
     """
-    from viotb.envs.scenarios.failures import run_stream
+    from viotb.envs.run.failure_runner import run_stream
 
     ates, ates_msckf = [], []
     for seed in range(8):

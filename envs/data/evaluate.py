@@ -7,7 +7,6 @@ clock, times the estimator per frame, writes TUM trajectories and returns the me
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from viotb.envs.data.euroc import EurocDataset, load_image, read_euroc
 from viotb.envs.data.tum import write_tum
+from viotb.envs.run.replay import replay
 from viotb.vio.factory import make_estimator
 from viotb.vio.lie import quat_wxyz_to_rotmat, rotmat_to_quat_wxyz
 from viotb.vio.metrics import evaluate_trajectory
@@ -88,55 +88,37 @@ def _frame(ds: EurocDataset, i: int, opts: EvalOptions, rng: np.random.Generator
 def run_estimator(
     ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | None = None
 ) -> tuple[list[StateEstimate], list[float], list[dict]]:
-    """Replay a dataset through an estimator.
+    """Replay a dataset through an estimator (:func:`viotb.envs.run.replay.replay`).
 
     Returns:
-        Estimates at each processed frame (after initialization), per-frame wall time (ms), and per-frame
-        health
-        records (dicts with t_s, tracked_features, updated_features, chi2_rejections, diverged, reason).
+        Estimates at each processed frame (after initialization, before any divergence), per-frame wall time
+        (ms), and per-frame health records (dicts with t_s, tracked_features, updated_features,
+        chi2_rejections, diverged, reason, conditions).
     """
     est = make_estimator(opts.estimator, ds.calib, ds.imu_noise, frontend=opts.frontend)
     rng = np.random.default_rng(opts.seed)
     n_frames = len(ds.cam_t_s) if opts.max_frames is None else min(opts.max_frames, len(ds.cam_t_s))
     frame_t_imu = ds.cam_t_s[:n_frames] + ds.calib.time_offset_s
-    t_end = float(frame_t_imu[-1]) if n_frames else float(ds.imu.t_s[-1])
     # Start the IMU one second before the first frame (static initialization needs a still window).
-    i_imu = int(np.searchsorted(ds.imu.t_s, float(frame_t_imu[0]) - 1.0)) if n_frames else 0
-    estimates: list[StateEstimate] = []
-    ms: list[float] = []
-    health: list[dict] = []
-    for k in range(n_frames):
-        while i_imu < len(ds.imu) and ds.imu.t_s[i_imu] <= frame_t_imu[k]:
-            est.feed_imu(ds.imu.sample(i_imu))
-            i_imu += 1
-        frame = _frame(ds, k, opts, rng)
-        if opts.estimator == "ground-truth":
-            est.feed_truth(_truth_estimate(ds, float(frame_t_imu[k])))  # type: ignore[attr-defined]
-        t0 = time.perf_counter()
-        est.feed_camera(frame)
-        ms.append((time.perf_counter() - t0) * 1e3)
-        h = est.health()
-        health.append(
-            {
-                "t_s": float(frame_t_imu[k]),
-                "tracked_features": h.tracked_features,
-                "updated_features": h.updated_features,
-                "chi2_rejections": h.chi2_rejections,
-                "diverged": h.diverged,
-                "reason": h.reason,
-                "conditions": list(h.conditions),
-            }
-        )
-        if h.diverged:
-            break
-        state = est.estimate()
-        if state is not None:
-            estimates.append(state)
-        if progress is not None:
-            progress(k + 1, n_frames)
-        if frame_t_imu[k] >= t_end:
-            break
-    return estimates, ms, health
+    imu_start = float(frame_t_imu[0]) - 1.0 if n_frames else None
+    truth_at = (lambda t: _truth_estimate(ds, t)) if opts.estimator == "ground-truth" else None
+    frames = (_frame(ds, k, opts, rng) for k in range(n_frames))
+    run = replay(est, ds.imu, frames, ds.calib.time_offset_s, imu_start_s=imu_start, truth_at=truth_at,
+                 progress=progress, n_frames=n_frames)
+    health = [
+        {
+            "t_s": float(t),
+            "tracked_features": h.tracked_features,
+            "updated_features": h.updated_features,
+            "chi2_rejections": h.chi2_rejections,
+            "diverged": h.diverged,
+            "reason": h.reason,
+            "conditions": list(h.conditions),
+        }
+        for t, h in zip(run.frame_t_imu_s, run.health)
+    ]
+    estimates = [e for e, h in zip(run.estimates, run.health) if e is not None and not h.diverged]
+    return estimates, run.ms_per_frame, health
 
 
 def estimates_to_trajectory(estimates: list[StateEstimate]) -> TrajectoryArrays:

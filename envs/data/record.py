@@ -20,10 +20,11 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.sim.camera_timing import frame_schedule
 from viotb.envs.data.euroc import write_euroc
-from viotb.envs.sim.imu_model import ImuModel, imu_preset
+from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
+from viotb.envs.sim.camera_timing import frame_schedule
+from viotb.envs.sim.imu_model import ImuModel, imu_preset
 from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
@@ -66,8 +67,6 @@ def record_scenario(
     if severity is None:
         scenario = get_scenario(name)
     else:
-        from viotb.envs.scenarios.failures import failure_record_scenario  # noqa: PLC0415
-
         scenario = failure_record_scenario(name, severity)
     if seconds is not None and not (np.isfinite(seconds) and seconds > 0.0):
         raise ValueError(f"record_scenario: seconds must be positive, got {seconds}")

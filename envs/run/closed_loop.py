@@ -21,73 +21,19 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
-from viotb.envs.sim.camera_timing import CameraModelParams
-from viotb.envs.sim.faults import SensorFaults
 from viotb.envs.sim.imu_model import ImuModel, imu_preset
 from viotb.envs.sim.render import OffscreenRenderer, camera_calibration
+from viotb.envs.sim.rig import RigConfig
 from viotb.envs.sim.simulation import Simulation
 from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
 from viotb.vio.factory import make_estimator
 from viotb.vio.msckf import MsckfParams
 from viotb.vio.types import CameraFrame, HealthStatus, ImuSample, StateEstimate
 from viotb.vio.window import WindowParams
-
-
-@dataclass(frozen=True)
-class WindParams:
-    """Wind gusts as a horizontal force on the body: a seeded Ornstein-Uhlenbeck process plus a mean.
-
-    Attributes:
-        mean_force_W_N: Constant force (N), shape (3,).
-        gust_sigma_N: Stationary standard deviation of the gust force per horizontal axis (N).
-        gust_time_constant_s: Correlation time of the gusts (s).
-    """
-
-    mean_force_W_N: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    gust_sigma_N: float = 0.0
-    gust_time_constant_s: float = 1.0
-
-
-@dataclass(frozen=True)
-class RigConfig:
-    """Everything that defines the simulated rig of a closed-loop run.
-
-    Attributes:
-        scene: Scene name (``viotb.models.constants.SCENE_XMLS``).
-        estimator: ``msckf``, ``imu-only`` or ``ground-truth``.
-        frontend: ``klt`` (OpenCV on rendered images) or ``sim`` (projected landmarks, fast mode).
-        imu_preset: IMU model preset name (``viotb.envs.sim.imu_model``).
-        camera: Camera model (rate, resolution, clock offset, latency, drops, blackouts, pixel noise).
-        start_p_W_m: Start position of the body on the ground (m), shape (3,).
-        start_yaw_rad: Start heading (rad).
-        wind: Wind gusts.
-        sim_pixel_sigma_px: Pixel noise of the ``sim`` front end (px).
-        render_images: Render the onboard camera even in ``sim`` mode (for image observations / recordings).
-        imu_fault_at_s: From this time on (s) the IMU outputs NaN on every axis: a failed sensor, used to test
-            how an estimator and the runner behave when the estimate becomes unusable; None = healthy.
-        faults: Calibration / IMU errors (:class:`~viotb.envs.sim.faults.SensorFaults`): what the estimator is
-            told and fed, not the truth.
-        online_calibration: Estimate the time offset and the extrinsics online (MSCKF,
-            :meth:`~viotb.vio.msckf.MsckfParams.with_online_calibration`).
-    """
-
-    scene: str = "textured_room"
-    estimator: str = "msckf"
-    frontend: str = "klt"
-    imu_preset: str = "adis16448"
-    camera: CameraModelParams = field(default_factory=CameraModelParams)
-    start_p_W_m: tuple[float, float, float] = (0.0, 0.0, 0.06)
-    start_yaw_rad: float = 0.0
-    wind: WindParams = field(default_factory=WindParams)
-    sim_pixel_sigma_px: float = 0.5
-    render_images: bool = False
-    imu_fault_at_s: float | None = None
-    faults: SensorFaults = field(default_factory=SensorFaults)
-    online_calibration: bool = False
 
 
 @dataclass(frozen=True)

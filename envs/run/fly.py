@@ -1,13 +1,10 @@
 """Closed-loop flights: a quadrotor that initializes on the ground, takes off and flies on its own VIO.
 
-The runner (``viotb fly``) is a small phase machine on top of :class:`~viotb.envs.run.closed_loop.ClosedLoopSim`:
-
-1. ``ground``: motors off; the estimator initializes statically from the IMU (and sees the camera) while the
-   drone sits still. No truth is read by the control path after t = 0.
-2. ``takeoff``: a smooth climb from the estimated start to ``takeoff_altitude_m`` above it.
-3. ``excite``: a short excitation manoeuvre, flown only if the estimator asks for one
-   (``estimator.wants_excitation()``), as a real VIO drone must.
-4. ``mission``: the scenario's setpoints, expressed relative to the hover point, in the estimator's frame.
+The runner (``viotb fly``) drives :class:`~viotb.envs.run.closed_loop.ClosedLoopSim` (the scheduler) with the
+phase machine of :class:`~viotb.envs.run.mission.TakeoffSequence`: on the ground until the estimator initializes
+from the IMU at rest, a climb to ``takeoff_altitude_m`` above the estimated start, an excitation manoeuvre when
+the estimator asks for one, then the scenario's mission relative to the hover point, in the estimator's frame.
+No truth is read by the control path after t = 0.
 
 If the estimator reports divergence, the runner stops the motors, records ``diverged`` with the reason and
 ends the flight instead of crashing the process. Metrics compare truth with the setpoints mapped into the
@@ -22,174 +19,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from viotb.controllers import SE3Controller, SE3Gains
-from viotb.controllers.setpoints import (
-    ExcitationManeuver,
-    FigureEight,
-    HoverPoint,
-    Sequence,
-    StraightLine,
-    Takeoff,
-    Waypoints,
-)
-from viotb.controllers.types import FlatOutput, NavState
-from viotb.envs.sim.camera_timing import CameraModelParams
-from viotb.envs.run.closed_loop import ClosedLoopSim, RigConfig, WindParams
+from viotb.controllers.types import NavState
+from viotb.envs.run.closed_loop import ClosedLoopSim
+from viotb.envs.run.mission import TakeoffSequence
+from viotb.envs.scenarios.failures import failure_fly_scenario
+from viotb.envs.scenarios.registry import get_fly_scenario
 from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
+from viotb.vio.metrics import align_umeyama
 
 ProgressFn = Callable[[float, float], None]
 
 CONTROL_RATE_HZ = 250.0
 """Position/attitude controller rate (Hz): a whole multiple of the 1 kHz physics."""
-
-
-@dataclass(frozen=True)
-class FlyScenario:
-    """A closed-loop scenario.
-
-    Attributes:
-        name: Registry name.
-        description: One line.
-        rig: Scene, sensors, wind (the estimator and front end are chosen per run).
-        mission: ``"hover"``, ``"waypoints"``, ``"figure8"``, ``"aggressive"``, ``"line"`` (4.5 m along the
-            heading at a constant 0.8 m/s, then hover) or ``"loops"`` (three laps of the waypoint square).
-        default_seconds: Default flight duration (s), ground phase included.
-        takeoff_altitude_m: Climb above the start (m).
-    """
-
-    name: str
-    description: str
-    rig: RigConfig = field(default_factory=RigConfig)
-    mission: str = "hover"
-    default_seconds: float = 20.0
-    takeoff_altitude_m: float = 1.0
-
-
-def _fly_scenarios() -> dict[str, FlyScenario]:
-    """The closed-loop scenario registry."""
-    blackout = CameraModelParams(blackout_intervals_s=((12.0, 14.0),))
-    items = [
-        FlyScenario("fly-hover", "take off and hold a point in the textured room", default_seconds=30.0),
-        FlyScenario(
-            "fly-waypoints", "fly a square of waypoints at 1.5 m", mission="waypoints", default_seconds=30.0
-        ),
-        FlyScenario("fly-figure8", "track a 3 x 1.5 m figure-8", mission="figure8", default_seconds=40.0),
-        FlyScenario(
-            "fly-blackout",
-            "hover with a 2 s camera blackout at t = 12 s (coast on the IMU)",
-            rig=RigConfig(camera=blackout),
-            default_seconds=20.0,
-        ),
-        FlyScenario(
-            "fly-imu-failure",
-            "hover until the IMU fails at t = 12 s: the estimator must report it and the runner stop safely",
-            rig=RigConfig(imu_fault_at_s=12.0),
-            default_seconds=16.0,
-        ),
-        FlyScenario(
-            "fly-blank-wall",
-            "hover facing a blank wall (feature poverty)",
-            rig=RigConfig(scene="blank_wall", start_p_W_m=(3.0, 0.0, 0.06)),
-            default_seconds=20.0,
-        ),
-        FlyScenario(
-            "fly-dark-room", "hover in a dark room", rig=RigConfig(scene="dark_room"), default_seconds=20.0
-        ),
-        FlyScenario(
-            "fly-wind",
-            "hold a point against wind gusts (2 N sigma, 1 s correlation)",
-            rig=RigConfig(wind=WindParams(mean_force_W_N=(0.5, 0.0, 0.0), gust_sigma_N=2.0)),
-            default_seconds=20.0,
-        ),
-        FlyScenario(
-            "fly-gyro-saturation",
-            "an aggressive roll manoeuvre with a +-125 deg/s gyro that saturates",
-            rig=RigConfig(imu_preset="bmi088-125dps"),
-            mission="aggressive",
-            default_seconds=20.0,
-        ),
-    ]
-    return {s.name: s for s in items}
-
-
-FLY_SCENARIOS = _fly_scenarios()
-
-
-def _register_fly_scenarios() -> None:
-    """List the closed-loop scenarios in the shared registry (``viotb scenarios``) as kind ``fly``."""
-    from viotb.envs.scenarios.registry import Scenario, is_registered, register
-
-    for sc in list(FLY_SCENARIOS.values()):
-        if not is_registered(sc.name):
-            register(
-                Scenario(
-                    name=sc.name,
-                    description=sc.description,
-                    kind="fly",
-                    vehicle="quadrotor",
-                    scene=sc.rig.scene,
-                    default_seconds=sc.default_seconds,
-                    imu_preset=sc.rig.imu_preset,
-                    camera=sc.rig.camera,
-                )
-            )
-
-
-_register_fly_scenarios()
-
-
-def get_fly_scenario(name: str) -> FlyScenario:
-    """Look up a closed-loop scenario.
-
-    Raises:
-        ValueError: Unknown name (lists the known ones).
-    """
-    if name not in FLY_SCENARIOS:
-        import viotb.envs.scenarios.failures  # noqa: F401, PLC0415 (registers the fly-fail-* scenarios)
-    if name not in FLY_SCENARIOS:
-        raise ValueError(f"unknown closed-loop scenario {name!r}; known: {sorted(FLY_SCENARIOS)}")
-    return FLY_SCENARIOS[name]
-
-
-def _mission(kind: str, hover_W: np.ndarray, yaw: float) -> object:
-    """Mission setpoints starting at rest at ``hover_W`` (estimator frame)."""
-    if kind == "hover":
-        return HoverPoint(hover_W, yaw)
-    if kind in ("waypoints", "loops"):
-        R = rotz(yaw)
-        lap = [[1.5, 0, 0.5], [1.5, 1.5, 0.5], [0, 1.5, 0.5], [0, 0, 0]]
-        corners = [[0, 0, 0]] + lap * (3 if kind == "loops" else 1)
-        square = [hover_W + R @ np.array(d) for d in corners]
-        yaws = np.full(len(square), yaw)
-        return Sequence([Waypoints(np.array(square), yaws_rad=yaws, speed_m_s=0.6), HoverPoint(hover_W, yaw)])
-    if kind == "line":
-        line = StraightLine(hover_W, rotz(yaw) @ np.array([1.0, 0.0, 0.0]), length_m=4.5, speed_m_s=0.8,
-                            yaw_rad=yaw)
-        return Sequence([line, HoverPoint(line.sample(line.duration_s).p_W, yaw)])
-    if kind == "figure8":
-        return FigureEight(
-            center_xy_m=hover_W[:2],
-            size_m=np.array([1.5, 0.75]),
-            period_s=12.0,
-            altitude_m=float(hover_W[2]),
-            yaw_rad=yaw,
-        )
-    if kind == "aggressive":
-        return Sequence(
-            [
-                ExcitationManeuver(
-                    hover_W,
-                    amplitude_m=np.array([0.6, 0.6, 0.1]),
-                    frequency_hz=np.array([1.2, 1.4, 0.5]),
-                    yaw_center_rad=yaw,
-                    yaw_amplitude_rad=0.0,
-                    duration_s=4.0,
-                ),
-                HoverPoint(hover_W, yaw),
-            ]
-        )
-    raise ValueError(f"unknown mission {kind!r}")
 
 
 @dataclass
@@ -234,7 +77,7 @@ def fly(
     """Fly a closed-loop scenario.
 
     Args:
-        scenario: Name from :data:`FLY_SCENARIOS`.
+        scenario: A closed-loop scenario name (:func:`~viotb.envs.scenarios.registry.fly_scenario_names`).
         estimator: ``msckf``, ``imu-only`` or ``ground-truth``.
         seconds: Flight duration (s), ground phase included; scenario default if None.
         seed: Seeds sensors, wind and drops.
@@ -257,8 +100,6 @@ def fly(
     if severity is None:
         sc = get_fly_scenario(scenario)
     else:
-        from viotb.envs.scenarios.failures import failure_fly_scenario  # noqa: PLC0415
-
         sc = failure_fly_scenario(scenario, severity)
     total_s = sc.default_seconds if seconds is None else float(seconds)
     if not (total_s > 0.0 and np.isfinite(total_s)):
@@ -270,16 +111,11 @@ def fly(
     controller = SE3Controller(vehicle_params_from_model(loop.sim.model), gains or SE3Gains())
     log = FlightLog()
     ctrl_dt = 1.0 / CONTROL_RATE_HZ
-    phase = "ground"
-    plan = None
-    plan_t0 = 0.0
+    alt = np.array([0.0, 0.0, sc.takeoff_altitude_m])
+    seq = TakeoffSequence(lambda e: e.p_WB + alt, takeoff_s=3.0, mission=sc.mission, allow_excitation=True)
     gauge = None
-    hover_W = None
-    mission_t0 = None
     crashed = diverged = False
     reason = ""
-    excited = False
-    init_time = None
     thrusts = np.zeros(4)
     n_frames_seen = 0
     monitor = HealthMonitor()
@@ -292,28 +128,12 @@ def fly(
             # Stop safely: motors off, flight ended, the reason reported (no exception escapes).
             diverged, reason = True, health.reason or f"estimator failed: {loop.estimator_failure}"
             break
-        if phase == "ground" and est is not None:
-            init_time = loop.t_s
+        on_ground = seq.phase == "ground"
+        setpoint = seq.update(loop.t_s, est, loop.estimator)
+        if on_ground and seq.phase != "ground":
             tr = loop.truth()
             gauge = _gauge(est.R_WB, est.p_WB, tr.R_WB, tr.p_WB)
-            yaw0 = yaw_from_rotmat(est.R_WB)
-            hover_W = est.p_WB + np.array([0.0, 0.0, sc.takeoff_altitude_m])
-            plan = Takeoff(est.p_WB, float(hover_W[2]), duration_s=3.0, yaw_rad=yaw0)
-            plan_t0, phase = loop.t_s, "takeoff"
-        elif phase in ("takeoff", "excite") and loop.t_s - plan_t0 >= plan.duration_s:
-            yaw0 = plan.sample(plan.duration_s).yaw_rad
-            wants = getattr(loop.estimator, "wants_excitation", None)
-            if phase == "takeoff" and wants is not None and wants():
-                plan, plan_t0, phase, excited = (
-                    ExcitationManeuver(hover_W, yaw_center_rad=yaw0),
-                    loop.t_s,
-                    "excite",
-                    True,
-                )
-            else:
-                plan, plan_t0, phase = _mission(sc.mission, hover_W, yaw0), loop.t_s, "mission"
-                mission_t0 = loop.t_s
-        setpoint: FlatOutput | None = plan.sample(loop.t_s - plan_t0) if plan is not None else None
+        phase = seq.phase
         if phase == "ground" or est is None or setpoint is None:
             thrusts = np.zeros(4)
         else:
@@ -321,7 +141,7 @@ def fly(
             thrusts = cmd.thrusts_N
         loop.advance(thrusts, ctrl_dt)
         tr = loop.truth()
-        airborne = phase != "ground" and (loop.t_s - plan_t0 > 1.0 or phase != "takeoff")
+        airborne = phase != "ground" and (loop.t_s - seq.plan_t0_s > 1.0 or phase != "takeoff")
         if loop.crashed(airborne):
             crashed = True
         _log_tick(log, loop, phase, est, setpoint, gauge, tr, thrusts)
@@ -348,7 +168,7 @@ def fly(
             break
     wall = time.perf_counter() - wall0
     loop.close()
-    metrics = _metrics(log, mission_t0, init_time)
+    metrics = _metrics(log, seq.mission_t0_s, seq.init_t_s)
     metrics.update(_blackout_metrics(log, rig.camera.blackout_intervals_s))
     metrics.update(
         {
@@ -360,8 +180,8 @@ def fly(
             "crashed": bool(crashed),
             "diverged": bool(diverged),
             "reason": reason,
-            "excitation_flown": excited,
-            "init_time_s": init_time,
+            "excitation_flown": seq.excitation_flown,
+            "init_time_s": seq.init_t_s,
             "realtime_factor": float(loop.t_s / wall) if wall > 0 else float("inf"),
             "frames_delivered": loop.frames_delivered,
             "frames_dropped": loop.frames_dropped,
@@ -442,8 +262,6 @@ def _metrics(log: FlightLog, mission_t0: float | None, init_time: float | None) 
             out["max_err_m"] = float(np.max(err))
     ok = np.all(np.isfinite(p_est), axis=1)
     if init_time is not None and ok.sum() >= 3:
-        from viotb.vio.metrics import align_umeyama
-
         est_err = np.linalg.norm(p_est[ok] - p_true[ok], axis=1)
         out["est_rms_m"] = float(np.sqrt(np.mean(est_err**2)))
         al = align_umeyama(p_est[ok], p_true[ok], "posyaw")

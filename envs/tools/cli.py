@@ -66,7 +66,6 @@ def _fail(message: str) -> None:
 @app.command()
 def scenarios(as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout.")) -> None:
     """List the scenarios with one-line descriptions."""
-    import viotb.envs.run.fly  # noqa: F401  (registers the closed-loop scenarios)
     from viotb.envs.scenarios.registry import list_scenarios
 
     items = list_scenarios()
@@ -250,7 +249,8 @@ def failures(
 ) -> None:
     """Run each failure mode and its fix: error-vs-time plot, what the monitor said and when, the fix."""
     from rich.table import Table
-    from viotb.envs.scenarios.failures import FAILURES, failure_report
+    from viotb.envs.scenarios.failures import FAILURES
+    from viotb.envs.tools.failure_report import failure_report
 
     names = list(name) if name else list(FAILURES)
     unknown = [n for n in names if n not in FAILURES]

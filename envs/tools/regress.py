@@ -26,7 +26,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.scenarios.failures import StreamConfig, run_stream, synthesize_stream
+from viotb.envs.run.failure_runner import run_stream
+from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
 from viotb.vio.metrics import align_umeyama
 from viotb.vio.msckf import MsckfParams
 

@@ -1,0 +1,119 @@
+"""The one open-loop replay: IMU samples and camera frames fed to an estimator in timestamp order.
+
+Used by ``viotb eval`` (:mod:`viotb.envs.data.evaluate`), by the failure runner
+(:mod:`viotb.envs.run.failure_runner`) and by the tests that watch an estimator with the health monitor. Frames
+are stamped on the camera clock; they are interleaved with the IMU on the IMU clock,
+``t_imu = t_cam + time_offset_s``: every IMU sample up to a frame's IMU time is fed before the frame.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+from viotb.vio.health import HealthMonitor
+from viotb.vio.types import CameraFrame, Estimator, HealthStatus, ImuSeries, StateEstimate
+
+ProgressFn = Callable[[float, float], None]
+
+
+@dataclass
+class MonitoredRun:
+    """What a replay saw, one entry per frame fed.
+
+    Attributes:
+        estimates: Estimate after each frame (None before initialization).
+        frame_t_imu_s: Frame times on the IMU clock (s), shape (F,).
+        health: Estimator health after each frame.
+        active: The monitor's active conditions after each frame (empty sets without a monitor).
+        monitor: The monitor (``report()`` for the conditions), or None when the replay ran without one.
+        ms_per_frame: Wall time (ms) of each ``feed_camera`` call.
+    """
+
+    estimates: list[StateEstimate | None]
+    frame_t_imu_s: np.ndarray
+    health: list[HealthStatus]
+    active: list[set[str]]
+    monitor: HealthMonitor | None
+    ms_per_frame: list[float] = field(default_factory=list)
+
+
+def replay(
+    estimator: Estimator,
+    imu: ImuSeries,
+    frames: Iterable[CameraFrame],
+    time_offset_s: float,
+    monitor: HealthMonitor | None = None,
+    stop_on_divergence: bool = True,
+    imu_start_s: float | None = None,
+    truth_at: Callable[[float], StateEstimate] | None = None,
+    progress: ProgressFn | None = None,
+    n_frames: int | None = None,
+) -> MonitoredRun:
+    """Replay ``imu`` and ``frames`` through ``estimator`` (and ``monitor``, when given) in IMU-clock order.
+
+    Args:
+        estimator: Any estimator of the :class:`~viotb.vio.types.Estimator` protocol.
+        imu: IMU series (N samples).
+        frames: Camera frames in time order (camera clock); may be a lazy iterable (images load as they come).
+        time_offset_s: ``t_imu = t_cam + time_offset_s`` used to interleave the streams.
+        monitor: Health monitor fed every IMU sample and every frame (None: no monitor).
+        stop_on_divergence: Stop after the first frame whose health reports divergence.
+        imu_start_s: Skip IMU samples before this time (s, IMU clock); None = from the first sample.
+        truth_at: For the ``ground-truth`` pass-through: the truth at an IMU time, fed with
+            ``estimator.feed_truth`` before each frame.
+        progress: Optional ``(frames_done, n_frames)`` callback.
+        n_frames: Total frame count for ``progress``.
+
+    Returns:
+        One entry per frame fed (the frame that diverged included).
+    """
+    out = MonitoredRun([], np.zeros(0), [], [], monitor)
+    times: list[float] = []
+    i = 0 if imu_start_s is None else int(np.searchsorted(imu.t_s, imu_start_s))
+    n = len(imu)
+    total = float(n_frames) if n_frames is not None else float("nan")
+    for k, frame in enumerate(frames):
+        t_imu = float(frame.t_s) + time_offset_s
+        while i < n and imu.t_s[i] <= t_imu:
+            s = imu.sample(i)
+            estimator.feed_imu(s)
+            if monitor is not None:
+                monitor.observe_imu(s)
+            i += 1
+        if truth_at is not None:
+            estimator.feed_truth(truth_at(t_imu))
+        t0 = time.perf_counter()
+        estimator.feed_camera(frame)
+        out.ms_per_frame.append((time.perf_counter() - t0) * 1e3)
+        h = estimator.health()
+        est = estimator.estimate()
+        if monitor is not None:
+            monitor.observe_frame(t_imu, h, est)
+            out.active.append(monitor.active())
+        else:
+            out.active.append(set())
+        times.append(t_imu)
+        out.estimates.append(est)
+        out.health.append(h)
+        if progress is not None:
+            progress(k + 1, total)
+        if h.diverged and stop_on_divergence:
+            break
+    out.frame_t_imu_s = np.array(times)
+    return out
+
+
+def monitor_run(
+    estimator: Estimator,
+    imu: ImuSeries,
+    frames: Iterable[CameraFrame],
+    time_offset_s: float,
+    monitor: HealthMonitor | None = None,
+    stop_on_divergence: bool = True,
+) -> MonitoredRun:
+    """:func:`replay` with a health monitor (a default :class:`~viotb.vio.health.HealthMonitor` when None)."""
+    mon = monitor if monitor is not None else HealthMonitor()
+    return replay(estimator, imu, frames, time_offset_s, monitor=mon, stop_on_divergence=stop_on_divergence)
