@@ -70,9 +70,14 @@ class ImuOnlyEstimator:
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - st.imu.gyro_bias_rad_s
         return StateEstimate(
-            t_s=st.t_s, R_WB=st.imu.R_WB.copy(), p_WB=st.imu.p_WB.copy(), v_WB=st.imu.v_WB.copy(),
-            gyro_bias_rad_s=st.imu.gyro_bias_rad_s.copy(), accel_bias_m_s2=st.imu.accel_bias_m_s2.copy(),
-            omega_B_rad_s=omega, cov=marginal_covariance(st, [st.block(IMU_BLOCK)]),
+            t_s=st.t_s,
+            R_WB=st.imu.R_WB.copy(),
+            p_WB=st.imu.p_WB.copy(),
+            v_WB=st.imu.v_WB.copy(),
+            gyro_bias_rad_s=st.imu.gyro_bias_rad_s.copy(),
+            accel_bias_m_s2=st.imu.accel_bias_m_s2.copy(),
+            omega_B_rad_s=omega,
+            cov=marginal_covariance(st, [st.block(IMU_BLOCK)]),
         )
 
     def health(self) -> HealthStatus:

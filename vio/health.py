@@ -179,8 +179,8 @@ class _SlidingWindow:
             if 2 * n > len(self._t):  # more than half full: grow, else compact in place
                 self._t = np.concatenate([self._t, np.empty(len(self._t))])
                 self._x = np.concatenate([self._x, np.empty_like(self._x)])
-            self._t[:n] = self._t[self._start:self._end]
-            self._x[:n] = self._x[self._start:self._end]
+            self._t[:n] = self._t[self._start : self._end]
+            self._x[:n] = self._x[self._start : self._end]
             self._start, self._end = 0, n
         self._t[self._end] = t
         self._x[self._end] = row
@@ -193,12 +193,12 @@ class _SlidingWindow:
     @property
     def t(self) -> np.ndarray:
         """Times (s), shape (N,), increasing."""
-        return self._t[self._start:self._end]
+        return self._t[self._start : self._end]
 
     @property
     def x(self) -> np.ndarray:
         """Rows, shape (N, width)."""
-        return self._x[self._start:self._end]
+        return self._x[self._start : self._end]
 
 
 @dataclass(frozen=True)
@@ -262,14 +262,16 @@ class HealthMonitor:
                 self._first_saturated_t = t
             if self._n_saturated >= p.min_saturated_samples:
                 self._raise(
-                    "imu_saturation", self._first_saturated_t,
+                    "imu_saturation",
+                    self._first_saturated_t,
                     f"{self._n_saturated} saturated samples, first at t={self._first_saturated_t:.3f} s "
                     f"(gyro {np.array2string(gyro, precision=2)} rad/s)",
                 )
         self._check_excitation(t)
         if not self._initialized and t - self._first_imu_t > p.init_timeout_s:
             self._raise(
-                "initialization_failure", t,
+                "initialization_failure",
+                t,
                 f"no estimate after {t - self._first_imu_t:.1f} s of IMU data (timeout {p.init_timeout_s} s)",
             )
 
@@ -286,15 +288,19 @@ class HealthMonitor:
             self._poor_frames = 0
         if self._poor_frames >= p.poverty_frames:
             self._raise(
-                "feature_poverty", t_s,
+                "feature_poverty",
+                t_s,
                 f"{health.tracked_features} tracked features (< {p.min_tracked_features}) for "
                 f"{self._poor_frames} frames",
             )
         if estimate is not None and all(np.all(np.isfinite(x)) for x in (estimate.v_WB, estimate.R_WB)):
             self._speed_m_s = float(np.linalg.norm(estimate.v_WB))
-            self._attitude = (float(estimate.t_s), np.array(estimate.R_WB, dtype=float),
-                              np.array(estimate.gyro_bias_rad_s, dtype=float),
-                              np.array(estimate.accel_bias_m_s2, dtype=float))
+            self._attitude = (
+                float(estimate.t_s),
+                np.array(estimate.R_WB, dtype=float),
+                np.array(estimate.gyro_bias_rad_s, dtype=float),
+                np.array(estimate.accel_bias_m_s2, dtype=float),
+            )
         # Initialization.
         if estimate is not None and not self._init_checked:
             self._init_checked = True
@@ -367,7 +373,8 @@ class HealthMonitor:
         if t - self._unexcited_since >= p.excitation_hold_s:
             self._excitation_ok = False
             self._raise(
-                "insufficient_excitation", t,
+                "insufficient_excitation",
+                t,
                 f"world acceleration RMS {accel_rms:.3f} m/s^2 (< {p.min_accel_m_s2}) and gyro norm "
                 f"{gyro_norm:.3f} rad/s (< {p.min_gyro_norm_rad_s}) over {p.excitation_window_s} s at "
                 f"{self._speed_m_s:.2f} m/s: scale unobservable, a scale error grows the position error "
@@ -383,14 +390,16 @@ class HealthMonitor:
             still = float(np.max(np.std(accel, axis=0))) < 0.5
             if still and abs(g_norm - GRAVITY_M_S2) > p.gravity_norm_tol_m_s2:
                 self._raise(
-                    "initialization_failure", t_s,
+                    "initialization_failure",
+                    t_s,
                     f"gravity norm at init {g_norm:.3f} m/s^2 differs from {GRAVITY_M_S2} by more than "
                     f"{p.gravity_norm_tol_m_s2}",
                 )
         bg = float(np.linalg.norm(est.gyro_bias_rad_s))
         if bg > p.max_init_gyro_bias_rad_s:
             self._raise(
-                "initialization_failure", t_s,
+                "initialization_failure",
+                t_s,
                 f"initial gyro bias {bg:.3f} rad/s beyond {p.max_init_gyro_bias_rad_s} rad/s",
             )
 
@@ -407,15 +416,14 @@ class HealthMonitor:
             return
         sigma = float(np.sqrt(max(np.max(np.diag(est.cov)[3:6]), 0.0)))
         if sigma > p.max_position_sigma_m:
-            self._raise(
-                "divergence", t_s, f"position sigma {sigma:.2f} m beyond {p.max_position_sigma_m} m"
-            )
+            self._raise("divergence", t_s, f"position sigma {sigma:.2f} m beyond {p.max_position_sigma_m} m")
         moving = self._speed_m_s > p.min_sync_speed_m_s
         if self._last_used_t is None or health.updated_features > 0 or not moving:
             self._last_used_t = t_s
         elif health.tracked_features >= p.min_tracked_features and t_s - self._last_used_t > p.max_unused_s:
             self._raise(
-                "divergence", t_s,
+                "divergence",
+                t_s,
                 f"{health.tracked_features} features tracked but none used in an update for "
                 f"{t_s - self._last_used_t:.1f} s at {self._speed_m_s:.2f} m/s: the images do not fit the "
                 "state",
@@ -439,7 +447,8 @@ class HealthMonitor:
         if mean_nis <= p.max_nis_per_dof or not moving:
             return
         self._raise(
-            "time_sync_or_extrinsic_suspected", t_s,
+            "time_sync_or_extrinsic_suspected",
+            t_s,
             f"mean NIS per dof {mean_nis:.2f} (> {p.max_nis_per_dof}) over {len(arr)} updates while moving "
             f"(mean {mean_v:.2f} m/s, {mean_w:.2f} rad/s); correlation with angular speed "
             f"{_pearson(arr[:, 0], arr[:, 1]):.2f}, with linear speed {_pearson(arr[:, 0], arr[:, 2]):.2f}; "
@@ -454,15 +463,28 @@ class HealthMonitor:
         dt, sig_t = c.time_offset_s, c.time_offset_sigma_s
         if np.isfinite(dt) and abs(dt) > max(p.min_time_offset_change_s, k * sig_t):
             self._raise(
-                "time_offset_miscalibrated", t_s,
+                "time_offset_miscalibrated",
+                t_s,
                 f"online calibration moved the camera-IMU time offset by {dt * 1e3:+.2f} ms (sigma "
                 f"{sig_t * 1e3:.2f} ms, limits {p.min_time_offset_change_s * 1e3:.1f} ms and {k:g} sigma)",
             )
         for what, d, sig, lim, unit, scale in (
-            ("rotation", c.rotation_BC_rad, c.rotation_sigma_rad, p.min_rotation_change_rad, "deg",
-             np.rad2deg(1.0)),
-            ("translation", c.translation_BC_m, c.translation_sigma_m, p.min_translation_change_m, "cm",
-             100.0),
+            (
+                "rotation",
+                c.rotation_BC_rad,
+                c.rotation_sigma_rad,
+                p.min_rotation_change_rad,
+                "deg",
+                np.rad2deg(1.0),
+            ),
+            (
+                "translation",
+                c.translation_BC_m,
+                c.translation_sigma_m,
+                p.min_translation_change_m,
+                "cm",
+                100.0,
+            ),
         ):
             d, sig = np.asarray(d, dtype=float), np.asarray(sig, dtype=float)
             if not np.all(np.isfinite(d)):
@@ -470,7 +492,8 @@ class HealthMonitor:
             z = float(np.max(np.abs(d) / np.maximum(sig, 1e-12)))
             if float(np.linalg.norm(d)) > lim and z > k:
                 self._raise(
-                    "extrinsic_miscalibrated", t_s,
+                    "extrinsic_miscalibrated",
+                    t_s,
                     f"online calibration moved the camera-IMU {what} by "
                     f"{np.array2string(d * scale, precision=2)} {unit} (largest {z:.1f} sigma, limits "
                     f"{lim * scale:.2f} {unit} and {k:g} sigma)",

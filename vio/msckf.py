@@ -158,8 +158,13 @@ class MsckfParams:
         The fix of the time-sync / extrinsic failure mode; with both on, the calibration that moves names
         the cause (:class:`viotb.vio.health.HealthMonitor`).
         """
-        return replace(self, estimate_time_offset=True, time_offset_sigma_s=time_offset_sigma_s,
-                       estimate_extrinsics=True, extrinsic_sigma_rad=extrinsic_sigma_rad)
+        return replace(
+            self,
+            estimate_time_offset=True,
+            time_offset_sigma_s=time_offset_sigma_s,
+            estimate_extrinsics=True,
+            extrinsic_sigma_rad=extrinsic_sigma_rad,
+        )
 
 
 @dataclass(frozen=True)
@@ -311,9 +316,14 @@ class MsckfEstimator:
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
         return StateEstimate(
-            t_s=t_out, R_WB=vals.R_WB.copy(), p_WB=vals.p_WB.copy(), v_WB=vals.v_WB.copy(),
-            gyro_bias_rad_s=vals.gyro_bias_rad_s.copy(), accel_bias_m_s2=vals.accel_bias_m_s2.copy(),
-            omega_B_rad_s=omega, cov=0.5 * (cov + cov.T),
+            t_s=t_out,
+            R_WB=vals.R_WB.copy(),
+            p_WB=vals.p_WB.copy(),
+            v_WB=vals.v_WB.copy(),
+            gyro_bias_rad_s=vals.gyro_bias_rad_s.copy(),
+            accel_bias_m_s2=vals.accel_bias_m_s2.copy(),
+            omega_B_rad_s=omega,
+            cov=0.5 * (cov + cov.T),
         )
 
     def health(self) -> HealthStatus:
@@ -350,7 +360,9 @@ class MsckfEstimator:
             self.initialize(init)
         conditions = () if init is not None else ("waiting_for_init",)
         self._health = HealthStatus(
-            t_s=tracks.t_cam_s, initialized=self.state is not None, tracked_features=len(tracks),
+            t_s=tracks.t_cam_s,
+            initialized=self.state is not None,
+            tracked_features=len(tracks),
             conditions=conditions,
         )
 
@@ -363,10 +375,16 @@ class MsckfEstimator:
         elif len(tracks) < 20:
             conds.append("feature_poverty")
         return HealthStatus(
-            t_s=t_s, initialized=True, tracked_features=len(tracks), updated_features=stats.used,
-            chi2_rejections=stats.rejected, diverged=bool(self._diverged_reason),
+            t_s=t_s,
+            initialized=True,
+            tracked_features=len(tracks),
+            updated_features=stats.used,
+            chi2_rejections=stats.rejected,
+            diverged=bool(self._diverged_reason),
             reason=self._diverged_reason,
-            conditions=tuple(conds), nis_per_dof=stats.nis_per_dof, nis_per_dof_all=stats.nis_per_dof_all,
+            conditions=tuple(conds),
+            nis_per_dof=stats.nis_per_dof,
+            nis_per_dof_all=stats.nis_per_dof_all,
             calibration=self._calibration_drift(),
         )
 
@@ -456,7 +474,7 @@ class MsckfEstimator:
         if not is_psd(st, tol=1e-9):
             self._declare_divergence("covariance is not positive semi-definite")
             return
-        pos_sigma = float(np.sqrt(np.max(np.diag(st.cov)[POS:POS + 3])))
+        pos_sigma = float(np.sqrt(np.max(np.diag(st.cov)[POS : POS + 3])))
         if pos_sigma > p.max_position_sigma_m:
             self._declare_divergence(
                 f"position sigma {pos_sigma:.1f} m exceeds max_position_sigma_m={p.max_position_sigma_m}"
@@ -496,18 +514,20 @@ class MsckfEstimator:
         T = t_imu - t0
         # Rows: mean gyro = b_g, mean accel = R^T (0, 0, g) + b_a, velocity = 0.
         g_up_B = st.imu.R_WB.T @ np.array([0.0, 0.0, GRAVITY_M_S2])
-        r = np.concatenate([
-            g.mean(axis=0) - st.imu.gyro_bias_rad_s,
-            a.mean(axis=0) - g_up_B - st.imu.accel_bias_m_s2,
-            -st.imu.v_WB,
-        ])
+        r = np.concatenate(
+            [
+                g.mean(axis=0) - st.imu.gyro_bias_rad_s,
+                a.mean(axis=0) - g_up_B - st.imu.accel_bias_m_s2,
+                -st.imu.v_WB,
+            ]
+        )
         H = np.zeros((9, st.dim))
-        H[0:3, BG:BG + 3] = np.eye(3)
-        H[3:6, THETA:THETA + 3] = np.array(
+        H[0:3, BG : BG + 3] = np.eye(3)
+        H[3:6, THETA : THETA + 3] = np.array(
             [[0.0, -g_up_B[2], g_up_B[1]], [g_up_B[2], 0.0, -g_up_B[0]], [-g_up_B[1], g_up_B[0], 0.0]]
         )
-        H[3:6, BA:BA + 3] = np.eye(3)
-        H[6:9, VEL:VEL + 3] = np.eye(3)
+        H[3:6, BA : BA + 3] = np.eye(3)
+        H[6:9, VEL : VEL + 3] = np.eye(3)
         m2 = p.zupt_noise_multiplier**2
         R = np.diag(
             [m2 * self.noise.gyro_noise_density_rad_s_sqrthz**2 / T] * 3
@@ -581,10 +601,10 @@ class MsckfEstimator:
         H_pose = jac.H_pose * w[..., None]
         for k, t in enumerate(times):
             o = st.clone_block(float(t)).offset
-            H_x[:, 2 * k:2 * k + 2, o:o + 6] = H_pose[:, k]
+            H_x[:, 2 * k : 2 * k + 2, o : o + 6] = H_pose[:, k]
         if st.has_block(EXTRINSIC_BLOCK):
             o = st.block(EXTRINSIC_BLOCK).offset
-            H_x[:, :, o:o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * K, 6)
+            H_x[:, :, o : o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * K, 6)
         # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
         H_o, r_o = nullspace_project(H_x, H_f, r)
         if p.use_fej and p.update_linearization == "current_oc":
@@ -606,8 +626,16 @@ class MsckfEstimator:
         passed = chi2 < p.chi2_multiplier * self.chi2(dof)
         n_pass = int(passed.sum())
         nis = chi2 / dof
-        stats = UpdateStats(n_cand, F, n_pass, int(F - n_pass), int(dof[passed].sum()), n_bad,
-                            float(np.mean(nis[passed])) if n_pass else float("nan"), float(np.mean(nis)))
+        stats = UpdateStats(
+            n_cand,
+            F,
+            n_pass,
+            int(F - n_pass),
+            int(dof[passed].sum()),
+            n_bad,
+            float(np.mean(nis[passed])) if n_pass else float("nan"),
+            float(np.mean(nis)),
+        )
         if n_pass == 0:
             return stats
         # 6. Stack, compress (QR) and update.

@@ -117,18 +117,31 @@ class WindowParams:
 # ---------------------------------------------------------------------------------------------- factors
 def retract(x: ImuValues, dx: np.ndarray) -> ImuValues:
     """``x [+] dx`` with ``dx = [dtheta, dp, dv, dbg, dba]`` (15,), ``R = R Exp(dtheta)``."""
-    return ImuValues(x.R_WB @ exp_so3(dx[0:3]), x.p_WB + dx[3:6], x.v_WB + dx[6:9],
-                     x.gyro_bias_rad_s + dx[9:12], x.accel_bias_m_s2 + dx[12:15])
+    return ImuValues(
+        x.R_WB @ exp_so3(dx[0:3]),
+        x.p_WB + dx[3:6],
+        x.v_WB + dx[6:9],
+        x.gyro_bias_rad_s + dx[9:12],
+        x.accel_bias_m_s2 + dx[12:15],
+    )
 
 
 def boxminus(x: ImuValues, x0: ImuValues) -> np.ndarray:
     """``x [-] x0`` (15,), the inverse of :func:`retract`."""
-    return np.concatenate([log_so3(x0.R_WB.T @ x.R_WB), x.p_WB - x0.p_WB, x.v_WB - x0.v_WB,
-                           x.gyro_bias_rad_s - x0.gyro_bias_rad_s, x.accel_bias_m_s2 - x0.accel_bias_m_s2])
+    return np.concatenate(
+        [
+            log_so3(x0.R_WB.T @ x.R_WB),
+            x.p_WB - x0.p_WB,
+            x.v_WB - x0.v_WB,
+            x.gyro_bias_rad_s - x0.gyro_bias_rad_s,
+            x.accel_bias_m_s2 - x0.accel_bias_m_s2,
+        ]
+    )
 
 
-def preintegrate(t_s: np.ndarray, gyro: np.ndarray, accel: np.ndarray, x: ImuValues,
-                 noise: ImuNoise) -> ImuPreintegration:
+def preintegrate(
+    t_s: np.ndarray, gyro: np.ndarray, accel: np.ndarray, x: ImuValues, noise: ImuNoise
+) -> ImuPreintegration:
     """Preintegrate readings ``(t (n,), gyro (n, 3), accel (n, 3))`` at the biases of ``x`` (midpoints)."""
     pre = ImuPreintegration(x.gyro_bias_rad_s, x.accel_bias_m_s2, noise)
     dt = np.diff(t_s)
@@ -164,8 +177,15 @@ def imu_factor(
     u_v = Ri_T @ (xj.v_WB - xi.v_WB - g * dt)
     u_p = Ri_T @ (xj.p_WB - xi.p_WB - xi.v_WB * dt - 0.5 * g * dt * dt)
     r_R = log_so3(dR.T @ Ri_T @ xj.R_WB)
-    r = np.concatenate([r_R, u_v - dv, u_p - dp, xj.gyro_bias_rad_s - xi.gyro_bias_rad_s,
-                        xj.accel_bias_m_s2 - xi.accel_bias_m_s2])
+    r = np.concatenate(
+        [
+            r_R,
+            u_v - dv,
+            u_p - dp,
+            xj.gyro_bias_rad_s - xi.gyro_bias_rad_s,
+            xj.accel_bias_m_s2 - xi.accel_bias_m_s2,
+        ]
+    )
     Jr_inv = right_jacobian_inv_so3(r_R)
     J_i = np.zeros((NX, NX))
     J_j = np.zeros((NX, NX))
@@ -278,8 +298,13 @@ class WindowEstimator:
 
     name = "window"
 
-    def __init__(self, calib: CameraCalibration, noise: ImuNoise, params: WindowParams | None = None,
-                 frontend: FrontEnd | None = None) -> None:
+    def __init__(
+        self,
+        calib: CameraCalibration,
+        noise: ImuNoise,
+        params: WindowParams | None = None,
+        frontend: FrontEnd | None = None,
+    ) -> None:
         """Create an uninitialized estimator."""
         self.calib = calib
         self.noise = noise
@@ -351,8 +376,10 @@ class WindowEstimator:
             self._try_initialize(tracks)
             return
         if t_imu <= self.keyframes[-1].t_s:
-            raise ValueError(f"camera frame at t={frame.t_s:.9f} s (IMU clock {t_imu:.9f} s) is not newer "
-                             f"than the newest keyframe ({self.keyframes[-1].t_s:.9f} s)")
+            raise ValueError(
+                f"camera frame at t={frame.t_s:.9f} s (IMU clock {t_imu:.9f} s) is not newer "
+                f"than the newest keyframe ({self.keyframes[-1].t_s:.9f} s)"
+            )
         still = self._update_stillness(tracks)
         if self._diverged_reason or not self._is_keyframe(tracks):
             self._frames_since_kf += 1
@@ -388,10 +415,16 @@ class WindowEstimator:
         omega = np.zeros(3)
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - x.gyro_bias_rad_s
-        est = StateEstimate(t_s=t_out, R_WB=x.R_WB.copy(), p_WB=x.p_WB.copy(), v_WB=x.v_WB.copy(),
-                            gyro_bias_rad_s=x.gyro_bias_rad_s.copy(),
-                            accel_bias_m_s2=x.accel_bias_m_s2.copy(),
-                            omega_B_rad_s=omega, cov=0.5 * (P + P.T))
+        est = StateEstimate(
+            t_s=t_out,
+            R_WB=x.R_WB.copy(),
+            p_WB=x.p_WB.copy(),
+            v_WB=x.v_WB.copy(),
+            gyro_bias_rad_s=x.gyro_bias_rad_s.copy(),
+            accel_bias_m_s2=x.accel_bias_m_s2.copy(),
+            omega_B_rad_s=omega,
+            cov=0.5 * (P + P.T),
+        )
         self._est_cache = (self._version, t_new, est)
         return est
 
@@ -414,9 +447,12 @@ class WindowEstimator:
             init = self.initializer.try_initialize()  # type: ignore[attr-defined]
         if init is not None:
             self.initialize(init)
-        self._health = HealthStatus(t_s=tracks.t_cam_s, initialized=bool(self.keyframes),
-                                    tracked_features=len(tracks),
-                                    conditions=() if init is not None else ("waiting_for_init",))
+        self._health = HealthStatus(
+            t_s=tracks.t_cam_s,
+            initialized=bool(self.keyframes),
+            tracked_features=len(tracks),
+            conditions=() if init is not None else ("waiting_for_init",),
+        )
 
     def _is_keyframe(self, tracks: Tracks) -> bool:
         """Parallax or every-n-frames keyframe rule (VINS-Mono sec. IV-A, as the MSCKF's clone rule)."""
@@ -451,17 +487,24 @@ class WindowEstimator:
         disparity = float(np.median(np.linalg.norm(tracks.uv_px[i_now] - prev.uv_px[i_prev], axis=1)))
         _, gyro, accel = self._readings(prev.t_imu_s, tracks.t_imu_s)
         g_up_B = -est.R_WB.T @ gravity_W()
-        r = np.concatenate([gyro.mean(axis=0) - est.gyro_bias_rad_s,
-                            accel.mean(axis=0) - g_up_B - est.accel_bias_m_s2, -est.v_WB])
+        r = np.concatenate(
+            [
+                gyro.mean(axis=0) - est.gyro_bias_rad_s,
+                accel.mean(axis=0) - g_up_B - est.accel_bias_m_s2,
+                -est.v_WB,
+            ]
+        )
         H = np.zeros((9, NX))
         H[0:3, 9:12] = np.eye(3)
         H[3:6, 0:3] = skew(g_up_B)
         H[3:6, 12:15] = np.eye(3)
         H[6:9, 6:9] = np.eye(3)
         n = self.noise
-        R = np.diag([100.0 * n.gyro_noise_density_rad_s_sqrthz**2 / T] * 3
-                     + [100.0 * n.accel_noise_density_m_s2_sqrthz**2 / T] * 3
-                     + [p.zero_velocity_sigma_m_s**2] * 3)
+        R = np.diag(
+            [100.0 * n.gyro_noise_density_rad_s_sqrthz**2 / T] * 3
+            + [100.0 * n.accel_noise_density_m_s2_sqrthz**2 / T] * 3
+            + [p.zero_velocity_sigma_m_s**2] * 3
+        )
         chi2 = float(r @ np.linalg.solve(H @ est.cov @ H.T + R, r))
         moving_px = disparity >= p.zero_velocity_max_disparity_px
         imu_ok = chi2 < 16.92  # chi2(9) at 95 %
@@ -517,7 +560,7 @@ class WindowEstimator:
                     counts[fid] = counts.get(fid, 0) + 1
         room = p.max_landmarks - len(self.landmarks)
         cand = sorted((c for c in counts if counts[c] >= p.min_track_length), key=lambda f: (-counts[f], f))
-        cand = cand[:max(room, 0)]
+        cand = cand[: max(room, 0)]
         if not cand:
             return
         K = len(self.keyframes)
@@ -530,8 +573,9 @@ class WindowEstimator:
                     xy[f, k], mask[f, k] = val, True
         R_WB = np.stack([kf.x.R_WB for kf in self.keyframes])
         p_WB = np.stack([kf.x.p_WB for kf in self.keyframes])
-        tri = triangulate(R_WB @ self._R_BC, p_WB + R_WB @ self._p_BC, xy, mask, p.triangulation,
-                          self._focal_px)
+        tri = triangulate(
+            R_WB @ self._R_BC, p_WB + R_WB @ self._p_BC, xy, mask, p.triangulation, self._focal_px
+        )
         for f, fid in enumerate(cand):
             if tri.valid[f]:
                 self.landmarks[fid] = tri.p_W[f].copy()
@@ -550,8 +594,16 @@ class WindowEstimator:
                     xys.append(xy)
         return np.array(ks, dtype=np.int64), np.array(ls, dtype=np.int64), np.array(xys).reshape(-1, 2)
 
-    def _linearize(self, xs: list[ImuValues], pts: np.ndarray, obs: tuple, links: list[int],
-                   still: list[int], no_motion: list[int], use_prior: bool = True) -> _System:
+    def _linearize(
+        self,
+        xs: list[ImuValues],
+        pts: np.ndarray,
+        obs: tuple,
+        links: list[int],
+        still: list[int],
+        no_motion: list[int],
+        use_prior: bool = True,
+    ) -> _System:
         """Whitened Gauss-Newton system at ``(xs, pts)`` (IRLS Huber weights) and its robust cost."""
         N, L = len(xs), len(pts)
         D = N * NX
@@ -576,8 +628,9 @@ class WindowEstimator:
         if use_prior and pr is not None:
             key_to_k = {kf.key: k for k, kf in enumerate(self.keyframes)}
             idx = np.concatenate([np.arange(NX) + NX * key_to_k[key] for key in pr.keys])
-            dx = np.concatenate([boxminus(xs[key_to_k[key]], x0)
-                                 for key, x0 in zip(pr.keys, pr.x0, strict=True)])
+            dx = np.concatenate(
+                [boxminus(xs[key_to_k[key]], x0) for key, x0 in zip(pr.keys, pr.x0, strict=True)]
+            )
             H[np.ix_(idx, idx)] += pr.H
             g[idx] += pr.H @ dx + pr.g
             prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
@@ -597,7 +650,7 @@ class WindowEstimator:
             w_p = 1.0 / (self.params.zero_velocity_sigma_m_s * dt)
             r_p = w_p * (xs[k].p_WB - xs[k - 1].p_WB)
             J = np.zeros((3, 2 * NX))
-            J[:, 3:6], J[:, NX + 3:NX + 6] = -w_p * np.eye(3), w_p * np.eye(3)
+            J[:, 3:6], J[:, NX + 3 : NX + 6] = -w_p * np.eye(3), w_p * np.eye(3)
             sl = slice((k - 1) * NX, (k + 1) * NX)
             H[sl, sl] += J.T @ J
             g[sl] += J.T @ r_p
@@ -666,9 +719,11 @@ class WindowEstimator:
         # 0. Re-integrate preintegrations whose bias moved far from its linearization point (lesson ch. 5).
         for k, link in enumerate(self.links):
             xi = self.keyframes[k].x
-            if (np.linalg.norm(xi.gyro_bias_rad_s - link.pre.gyro_bias_rad_s) > p.repropagate_gyro_bias_rad_s
-                    or np.linalg.norm(xi.accel_bias_m_s2 - link.pre.accel_bias_m_s2)
-                    > p.repropagate_accel_bias_m_s2):
+            if (
+                np.linalg.norm(xi.gyro_bias_rad_s - link.pre.gyro_bias_rad_s) > p.repropagate_gyro_bias_rad_s
+                or np.linalg.norm(xi.accel_bias_m_s2 - link.pre.accel_bias_m_s2)
+                > p.repropagate_accel_bias_m_s2
+            ):
                 link.pre = preintegrate(*link.readings, xi, self.noise)
         lm_ids = sorted(self.landmarks)
         pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
@@ -685,7 +740,7 @@ class WindowEstimator:
             dx = np.linalg.solve(S, -g_red)
             rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
             dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
-            xs_new = [retract(x, dx[k * NX:(k + 1) * NX]) for k, x in enumerate(xs)]
+            xs_new = [retract(x, dx[k * NX : (k + 1) * NX]) for k, x in enumerate(xs)]
             pts_new = pts + dl
             sys_new = self._linearize(xs_new, pts_new, obs, links, still, no_motion)
             if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
@@ -704,8 +759,8 @@ class WindowEstimator:
         S, _, _ = self._reduce(sys, 0.0)
         n = len(xs) * NX
         e_last = np.zeros((n, NX))
-        e_last[n - NX:] = np.eye(NX)
-        self._cov_newest = np.linalg.solve(S, e_last)[n - NX:]
+        e_last[n - NX :] = np.eye(NX)
+        self._cov_newest = np.linalg.solve(S, e_last)[n - NX :]
         self._last_cost_per_res = sys.meas_cost / max(sys.n_res, 1)
         self._used = len(lm_ids)
         # 6. Outliers and landmarks behind a camera leave the window with their observations.
@@ -759,8 +814,9 @@ class WindowEstimator:
             return
         pos_sigma = float(np.sqrt(max(np.max(np.diag(self._cov_newest)[3:6]), 0.0)))
         if pos_sigma > p.max_position_sigma_m:
-            self._diverged_reason = (f"position sigma {pos_sigma:.1f} m exceeds max_position_sigma_m="
-                                     f"{p.max_position_sigma_m}")
+            self._diverged_reason = (
+                f"position sigma {pos_sigma:.1f} m exceeds max_position_sigma_m={p.max_position_sigma_m}"
+            )
             return
         c = getattr(self, "_last_cost_per_res", 0.0)
         gated = self._used + self._n_bad
@@ -770,7 +826,8 @@ class WindowEstimator:
             self._diverged_reason = (
                 f"cost blow-up in {self._blowups} consecutive keyframes: cost per measurement residual "
                 f"{c:.1f} (limit {p.max_cost_per_residual}), {self._n_bad} of {gated} features rejected as "
-                f"outliers or inconsistent (limit {p.runaway_reject_ratio:.0%})")
+                f"outliers or inconsistent (limit {p.runaway_reject_ratio:.0%})"
+            )
 
     def _make_health(self, t_s: float, tracks: Tracks) -> HealthStatus:
         conds = []
@@ -778,6 +835,12 @@ class WindowEstimator:
             conds.append("no_features")
         elif len(tracks) < 20:
             conds.append("feature_poverty")
-        return HealthStatus(t_s=t_s, initialized=True, tracked_features=len(tracks),
-                            updated_features=self._used, diverged=bool(self._diverged_reason),
-                            reason=self._diverged_reason, conditions=tuple(conds))
+        return HealthStatus(
+            t_s=t_s,
+            initialized=True,
+            tracked_features=len(tracks),
+            updated_features=self._used,
+            diverged=bool(self._diverged_reason),
+            reason=self._diverged_reason,
+            conditions=tuple(conds),
+        )
