@@ -138,7 +138,7 @@ class MsckfEstimator:
         self._pred_cache: tuple[int, float, ImuValues, np.ndarray, np.ndarray] | None = None
         self.last_stats = UpdateStats()
         self.zupt_count = 0
-        self.keyframes = KeyframeSelector(p.keyframing)
+        self.keyframe_rule = KeyframeSelector(p.keyframing)
         self.zero_velocity = ZeroVelocityDetector(
             p.zero_velocity, noise, p.chi2_multiplier * float(self.chi2(9))
         )
@@ -305,11 +305,11 @@ class MsckfEstimator:
             conditions.append("zupt")
             self.zupt_count += 1
             stats = UpdateStats()
-        elif not self.keyframes.is_keyframe(tracks):
-            self.keyframes.skip()
+        elif not self.keyframe_rule.is_keyframe(tracks):
+            self.keyframe_rule.skip()
             stats = UpdateStats()
         else:
-            self.keyframes.accept(tracks)
+            self.keyframe_rule.accept(tracks)
             self.propagator.propagate_and_clone(st, frame.t_s)
             self.database.add(frame.t_s, tracks.ids, tracks.xy_norm)
             stats = self._msckf_update(frame.t_s)
