@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from viotb.vio.types import StateEstimate
 
 
 def checked_array(owner: str, name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -81,17 +82,18 @@ class NavState:
             object.__setattr__(self, name, checked_array("NavState", name, getattr(self, name), (3,)))
 
     @classmethod
-    def from_estimate(cls, estimate: object) -> NavState:
-        """Build from a :class:`viotb.vio.types.StateEstimate` (or anything with the same attributes).
+    def from_estimate(cls, estimate: StateEstimate) -> NavState:
+        """Build from the estimator's output.
 
-        Uses ``R_WB``, ``p_WB``, ``v_WB`` and ``omega_B_rad_s`` (bias-corrected rate); the estimate type is
-        not imported so that this room depends on numpy only.
+        Uses ``R_WB``, ``p_WB``, ``v_WB`` and ``omega_B_rad_s`` (bias-corrected rate). ``vio.types`` is one of
+        the two ``vio`` modules this room may import (DESIGN.md: the estimate it consumes; ``vio.lie`` for
+        rotation math).
         """
         return cls(
-            R_WB=estimate.R_WB,  # type: ignore[attr-defined]
-            p_WB=estimate.p_WB,  # type: ignore[attr-defined]
-            v_WB=estimate.v_WB,  # type: ignore[attr-defined]
-            omega_B=estimate.omega_B_rad_s,  # type: ignore[attr-defined]
+            R_WB=estimate.R_WB,
+            p_WB=estimate.p_WB,
+            v_WB=estimate.v_WB,
+            omega_B=estimate.omega_B_rad_s,
         )
 
 

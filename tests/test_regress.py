@@ -5,7 +5,12 @@ from __future__ import annotations
 import json
 
 import pytest
+<<<<<<< HEAD
 from viotb.envs.tools.regress import DEFAULT_BASELINE, compare, load_baseline, run_suite, write_baseline
+=======
+from viotb.envs.regress import DEFAULT_BASELINE, compare, load_baseline, run_suite, write_baseline
+from viotb.vio.keyframing import KeyframeParams
+>>>>>>> vio
 from viotb.vio.msckf import MsckfParams
 
 
@@ -30,7 +35,7 @@ def test_passes_on_committed_baseline_and_is_deterministic(hover_result):
 
 def test_fails_on_degraded_filter():
     bad = run_suite(fly_case=False, only=("hover-sim",), params=MsckfParams(
-        pixel_sigma_px=8.0, max_clones=4, clone_every_n_frames=1))
+        pixel_sigma_px=8.0, max_clones=4, keyframing=KeyframeParams(every_n_frames=1)))
     rows = compare(bad, _only(load_baseline(DEFAULT_BASELINE), "hover-sim"))
     assert not all(r["ok"] for r in rows)
 

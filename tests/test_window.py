@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -303,7 +304,8 @@ def test_real_euroc_at_rest_holds_position_with_zero_velocity_factor():
     drift, n = _euroc_drift_m(WindowParams(frontend="klt"))
     assert n > 50
     assert drift < 0.01, drift
-    drift_off, _ = _euroc_drift_m(WindowParams(frontend="klt", zero_velocity_max_disparity_px=0.0))
+    no_zv = replace(WindowParams().zero_velocity, enabled=False)
+    drift_off, _ = _euroc_drift_m(WindowParams(frontend="klt", zero_velocity=no_zv))
     assert drift_off > 0.02, drift_off
 
 

@@ -2,7 +2,9 @@
 
 ``ImuOnlyEstimator`` starts like the MSCKF (an explicit :meth:`initialize` or the shared inertial initializer)
 and then only integrates the IMU with :class:`viotb.vio.propagator.Propagator`; its covariance grows without
-bound. ``GroundTruthEstimator`` reports the truth it is fed (``feed_truth``), for fast policy training.
+bound. ``GroundTruthEstimator`` reports the truth it is fed (``feed_truth``), for fast policy training. Both
+implement the whole :class:`~viotb.vio.types.Estimator` protocol, the methods that do not apply as documented
+no-ops.
 """
 
 from __future__ import annotations
@@ -49,14 +51,14 @@ class ImuOnlyEstimator:
         self._last_imu = sample
         if self.state is None:
             if self.initializer is not None:
-                self.initializer.feed_imu(sample)  # type: ignore[attr-defined]
+                self.initializer.feed_imu(sample)
             return
         self.propagator.propagate(self.state, float(sample.t_s))
 
     def feed_camera(self, frame: CameraFrame) -> None:
         """Camera frames only drive the initializer (features are not used otherwise)."""
         if self.state is None and self.initializer is not None:
-            init = self.initializer.try_initialize()  # type: ignore[attr-defined]
+            init = self.initializer.try_initialize()
             if init is not None:
                 self.initialize(init)
         self._health = HealthStatus(t_s=frame.t_s, initialized=self.state is not None)
@@ -84,9 +86,16 @@ class ImuOnlyEstimator:
         """Health of the latest frame (never diverges by itself)."""
         return self._health
 
+    def feed_truth(self, truth: StateEstimate) -> None:
+        """Truth is not used by dead reckoning (no-op; part of :class:`viotb.vio.types.Estimator`)."""
+
     def wants_excitation(self) -> bool:
-        """Never: this estimator has nothing to gain from an excitation manoeuvre."""
+        """Always False: dead reckoning gains nothing from excitation (its bias is never observed)."""
         return False
+
+    def last_tracks_px(self) -> np.ndarray:
+        """No front end: always an empty (0, 2) array."""
+        return np.zeros((0, 2))
 
 
 class GroundTruthEstimator:
@@ -123,6 +132,13 @@ class GroundTruthEstimator:
         """Initialized once truth has been fed."""
         return self._health
 
+    def initialize(self, init: object) -> None:
+        """No-op: the pass-through reports only the truth it is fed (:meth:`feed_truth`)."""
+
     def wants_excitation(self) -> bool:
-        """Never: this estimator has nothing to gain from an excitation manoeuvre."""
+        """Always False: the truth needs no excitation."""
         return False
+
+    def last_tracks_px(self) -> np.ndarray:
+        """No front end: always an empty (0, 2) array."""
+        return np.zeros((0, 2))

@@ -131,4 +131,3 @@ def with_extrinsic_rotation_error(calib: CameraCalibration, error_rad: float) ->
     """
     axis = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
     return replace(calib, R_BC=calib.R_BC @ exp_so3(axis * float(error_rad)))
-

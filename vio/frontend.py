@@ -117,7 +117,11 @@ class KltTracker:
         if not self.camera.has_distortion or len(uv) == 0:
             return self.camera.undistort_points(uv) if len(uv) else np.zeros((0, 2))
         out = cv2.undistortPoints(
-            uv.reshape(-1, 1, 2), self.camera.K, self._dist, R=np.eye(3), P=np.eye(3),
+            uv.reshape(-1, 1, 2),
+            self.camera.K,
+            self._dist,
+            R=np.eye(3),
+            P=np.eye(3),
             criteria=self._undistort_criteria,
         )
         return out.reshape(-1, 2)
@@ -159,9 +163,7 @@ class KltTracker:
         if len(pts) >= 8:
             a = self.undistort(prev) * self._focal_px
             b = self.undistort(pts) * self._focal_px
-            _, inl = cv2.findFundamentalMat(
-                a, b, cv2.FM_RANSAC, p.ransac_threshold_px, p.ransac_confidence
-            )
+            _, inl = cv2.findFundamentalMat(a, b, cv2.FM_RANSAC, p.ransac_threshold_px, p.ransac_confidence)
             if inl is not None:
                 keep = inl.ravel().astype(bool)
                 pts, ids = pts[keep], ids[keep]

@@ -2,160 +2,28 @@
 
 The monitor runs beside any :class:`~viotb.vio.types.Estimator`: it sees every IMU sample and, after each
 camera frame, the estimator's :class:`~viotb.vio.types.HealthStatus` and :class:`StateEstimate`. It raises
-named conditions (lesson 000, "VIO fails in characteristic, recognizable ways"):
+named conditions, whose catalog, thresholds and measurements are in :mod:`viotb.vio.health_conditions`.
 
-1. ``insufficient_excitation`` -- while the platform translates (estimated speed above
-   ``min_excitation_speed_m_s``), over a sliding window the world-frame acceleration (the accelerometer
-   rotated by the latest estimated attitude, propagated with the gyro between frames, bias and gravity
-   removed, averaged over ``excitation_block_s`` blocks against the noise) and the gyro norm stay below
-   thresholds. A quadrotor turns its specific force with its thrust, so a body-frame test misses a
-   coordinated turn (measured: body-axis std 0.094 m/s^2 on a figure-8 with 1.3 m/s^2 accelerations).
-   Scale is only observable through acceleration, so an error in it is never corrected and the position
-   error grows with the distance flown ("drifts at constant velocity -> no excitation"). At rest (before
-   initialization, on the ground, in a still hover) there is nothing to scale, so the flag waits for motion.
-2. ``feature_poverty`` -- fewer than ``min_tracked_features`` tracked for ``poverty_frames`` frames in a row.
-3. ``imu_saturation`` -- samples flagged ``saturated`` by the sensor (count and first time in the evidence).
-4. ``time_sync_or_extrinsic_suspected`` -- while the platform moves, the mean normalized innovation
-   squared per degree of freedom (``HealthStatus.nis_per_dof_all``, every triangulated feature of an
-   update, rejected ones included) over a window of updates stays above ``max_nis_per_dof`` times its
-   consistent value 1 ("worsens with speed -> time-sync / extrinsics"). A camera-IMU time offset ``dt``
-   moves the features by ``~ f (|omega| + |v| / Z) dt`` and a rotation error of the extrinsics rotates
-   every ray; both vanish at rest, hence the motion gate. The two causes are *not* told apart: measured on
-   the figure-8 streams of :mod:`viotb.envs.scenarios.failures`, the Pearson correlation over the window between the
-   NIS and the angular or linear speed is near zero or negative for both (the filter absorbs the part of
-   the error that is constant over its window -- a time offset on uniform motion is a rigid shift of the
-   trajectory -- and what is left follows the *changes* of the motion), so the correlations are only
-   reported in the evidence, and the condition is named for both causes. A least-squares fit of the
-   per-update NIS on ``a + b |omega| + c |v|`` over the whole 8 s run (seeds 0-3, 10 ms offset vs 2 deg
-   extrinsic) does not split them either: the angular-rate slope ``b`` is negative for *both* causes
-   (offset -0.53 / -0.07 / -1.21 / -0.60, extrinsic -0.31 / -0.09 / -0.25 / -0.06 per rad/s), so the
-   expected "offset grows with the rate" signature is absent; the speed slope ``c`` is 0.36 / -0.09 /
-   0.64 / 0.29 per m/s with the offset and 0.06 / -0.01 / 0.04 / 0.02 with the extrinsic error (nominal
-   0.00 / -0.00 / -0.01), so a threshold on ``c`` misnames seed 1 of the offset; and the extrinsic error's
-   NIS does persist in the slowest third of the updates (1.32-1.47) but so does the offset's (1.61-2.18).
-   What does tell them apart is the fix itself: with online calibration of both the time offset and the
-   extrinsics on, the estimate that moves names the cause (conditions 7 and 8), so the evidence of this
-   condition says to turn both on.
-5. ``initialization_failure`` -- no state after ``init_timeout_s`` of IMU data, or the first estimate's
-   specific force at rest disagrees with 9.81 m/s^2 (gravity norm check), or the first gyro bias estimate
-   is far beyond the prior.
-6. ``divergence`` -- ``health.diverged``, a non-finite estimate/covariance, a position sigma growing
-   beyond ``max_position_sigma_m`` (the covariance "balloons"), or images the state cannot explain: for
-   ``max_unused_s`` the platform moves (estimated speed above ``min_sync_speed_m_s``) past at least
-   ``min_tracked_features`` tracked features and not one enters an update (they fail triangulation or the
-   gate). Measured: an in-flight start with a confident wrong state (3 deg of tilt, 20 % scale, 0.2 deg /
-   1 % sigmas) keeps ~100 tracks and uses none while it drifts 20 m on the IMU; nothing else fired.
-7. ``time_offset_miscalibrated`` -- the estimator calibrates the time offset online
-   (``HealthStatus.calibration``) and its estimate has moved from the given value by more than
-   ``calib_min_sigmas`` of its own sigma and more than ``min_time_offset_change_s``: the given offset is
-   wrong (the filter is fixing it; store the estimate).
-8. ``extrinsic_miscalibrated`` -- the same for the camera-IMU rotation (``min_rotation_change_rad``) or
-   translation (``min_translation_change_m``). Measured on the 8 s figure-8 streams (seed 0) with both
-   calibrations on: a 10 ms offset gives 10.05 +- 0.08 ms and 0.06 deg of rotation; a 2 deg rotation error
-   gives (-1.43, 0.00, -1.35) +- 0.02-0.03 deg (truth (-1.41, 0, -1.41)) and 0.05 ms; nominal 0.05 ms and
-   0.06 deg.
-
-:func:`monitor_run` replays an IMU series and camera frames through an estimator with a monitor attached
-(the loop of ``viotb.envs.data.evaluate.run_estimator``).
+The replay that feeds it IMU samples and frames in timestamp order is ``viotb.envs.run.replay`` (vio/ does not
+run data: it is told it).
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable
-from dataclasses import dataclass
 
 import numpy as np
+from viotb.vio.health_conditions import CONDITION_NAMES, Condition, HealthParams
 from viotb.vio.lie import exp_so3
 from viotb.vio.types import (
     GRAVITY_M_S2,
     CalibrationDrift,
-    CameraFrame,
-    Estimator,
     HealthStatus,
     ImuSample,
-    ImuSeries,
     StateEstimate,
 )
 
-CONDITION_NAMES = (
-    "insufficient_excitation",
-    "feature_poverty",
-    "imu_saturation",
-    "time_sync_or_extrinsic_suspected",
-    "initialization_failure",
-    "divergence",
-    "time_offset_miscalibrated",
-    "extrinsic_miscalibrated",
-)
-"""Every name :class:`HealthMonitor` can raise."""
-
-
-@dataclass(frozen=True)
-class HealthParams:
-    """Thresholds of :class:`HealthMonitor` (units in the names).
-
-    Attributes:
-        excitation_window_s: Sliding window (s) of the excitation test.
-        excitation_block_s: Block length (s) over which the world acceleration is averaged (the noise of a
-            block mean is the sample noise over sqrt(samples per block)).
-        min_accel_m_s2: Excitation needs the RMS over the window of the block-mean world acceleration norm
-            above this (m/s^2).
-        min_gyro_norm_rad_s: ...or a mean gyro norm above this (rad/s) while the accel test also fails
-            (rotation alone does not make scale observable, so both must be low to raise the flag).
-        min_excitation_speed_m_s: The flag is raised only while the latest estimated speed (m/s) exceeds
-            this (a scale error moves the position only in proportion to the distance flown).
-        excitation_hold_s: The test must fail continuously for this long (s) before the flag is raised.
-        min_tracked_features: Tracked-feature count below which a frame counts as poor.
-        poverty_frames: Consecutive poor frames that raise ``feature_poverty``.
-        min_saturated_samples: Saturated IMU samples that raise ``imu_saturation``.
-        speed_window_frames: Updates (frames with a finite ``nis_per_dof_all``) in the NIS window.
-        max_nis_per_dof: Mean NIS per dof over the window above which a time-sync / extrinsic error is
-            suspected (1 for a consistent filter; measured window means 0.92-1.03 on nominal hover, circle
-            and figure-8 streams, up to 1.53 with a 2 deg extrinsic error and 2.49 with a 10 ms offset on a
-            figure-8 at 2x speed, and up to 1.15-1.2 on a nominal aggressive 5 rad/s, 4 m/s manoeuvre, whose
-            few fast-moving features leave the filter mildly inconsistent: 1.15 raised a false alarm there;
-            1.25 names the extrinsic error 0.1-0.5 s later, seeds 0-2).
-        min_sync_speed_m_s: The window's mean linear speed (m/s) must exceed this...
-        min_sync_rate_rad_s: ...or its mean angular speed (rad/s) this (the errors vanish at rest).
-        sync_min_features: Updates with fewer gated features (used + rejected) are ignored.
-        init_timeout_s: Seconds of IMU data without an estimate that raise ``initialization_failure``.
-        gravity_norm_tol_m_s2: Largest allowed difference (m/s^2) between the mean accelerometer norm in the
-            first still second and 9.81 when the estimator initializes (a miscalibrated accelerometer or a
-            moving start makes the init gravity wrong).
-        max_init_gyro_bias_rad_s: A gyro bias (rad/s) estimated at init beyond this is implausible.
-        max_position_sigma_m: Position sigma (m) beyond which the covariance is said to balloon.
-        max_unused_s: Seconds of motion past enough tracked features without any used in an update that
-            count as divergence.
-        calib_min_sigmas: An online calibration estimate must move by more than this many of its sigmas...
-        min_time_offset_change_s: ...and by more than this (s) to raise ``time_offset_miscalibrated``;
-        min_rotation_change_rad: ...by more than this (rad, norm) or...
-        min_translation_change_m: ...this (m, norm) to raise ``extrinsic_miscalibrated``.
-    """
-
-    excitation_window_s: float = 2.0
-    excitation_block_s: float = 0.25
-    min_accel_m_s2: float = 0.1
-    min_gyro_norm_rad_s: float = 0.2
-    min_excitation_speed_m_s: float = 0.2
-    excitation_hold_s: float = 0.5
-    min_tracked_features: int = 20
-    poverty_frames: int = 5
-    min_saturated_samples: int = 1
-    speed_window_frames: int = 30
-    max_nis_per_dof: float = 1.25
-    min_sync_speed_m_s: float = 0.3
-    min_sync_rate_rad_s: float = 0.3
-    sync_min_features: int = 5
-    init_timeout_s: float = 5.0
-    gravity_norm_tol_m_s2: float = 0.3
-    max_init_gyro_bias_rad_s: float = 0.2
-    max_position_sigma_m: float = 10.0
-    max_unused_s: float = 2.0
-    calib_min_sigmas: float = 5.0
-    min_time_offset_change_s: float = 0.002
-    min_rotation_change_rad: float = float(np.deg2rad(0.5))
-    min_translation_change_m: float = 0.02
+__all__ = ["CONDITION_NAMES", "Condition", "HealthMonitor", "HealthParams"]
 
 
 class _SlidingWindow:
@@ -179,8 +47,8 @@ class _SlidingWindow:
             if 2 * n > len(self._t):  # more than half full: grow, else compact in place
                 self._t = np.concatenate([self._t, np.empty(len(self._t))])
                 self._x = np.concatenate([self._x, np.empty_like(self._x)])
-            self._t[:n] = self._t[self._start:self._end]
-            self._x[:n] = self._x[self._start:self._end]
+            self._t[:n] = self._t[self._start : self._end]
+            self._x[:n] = self._x[self._start : self._end]
             self._start, self._end = 0, n
         self._t[self._end] = t
         self._x[self._end] = row
@@ -193,27 +61,12 @@ class _SlidingWindow:
     @property
     def t(self) -> np.ndarray:
         """Times (s), shape (N,), increasing."""
-        return self._t[self._start:self._end]
+        return self._t[self._start : self._end]
 
     @property
     def x(self) -> np.ndarray:
         """Rows, shape (N, width)."""
-        return self._x[self._start:self._end]
-
-
-@dataclass(frozen=True)
-class Condition:
-    """A named condition raised by the monitor.
-
-    Attributes:
-        name: One of :data:`CONDITION_NAMES`.
-        t_s_first: Time (s, IMU clock) it was first raised.
-        evidence: Human-readable numbers behind it.
-    """
-
-    name: str
-    t_s_first: float
-    evidence: str
+        return self._x[self._start : self._end]
 
 
 class HealthMonitor:
@@ -262,14 +115,16 @@ class HealthMonitor:
                 self._first_saturated_t = t
             if self._n_saturated >= p.min_saturated_samples:
                 self._raise(
-                    "imu_saturation", self._first_saturated_t,
+                    "imu_saturation",
+                    self._first_saturated_t,
                     f"{self._n_saturated} saturated samples, first at t={self._first_saturated_t:.3f} s "
                     f"(gyro {np.array2string(gyro, precision=2)} rad/s)",
                 )
         self._check_excitation(t)
         if not self._initialized and t - self._first_imu_t > p.init_timeout_s:
             self._raise(
-                "initialization_failure", t,
+                "initialization_failure",
+                t,
                 f"no estimate after {t - self._first_imu_t:.1f} s of IMU data (timeout {p.init_timeout_s} s)",
             )
 
@@ -286,15 +141,19 @@ class HealthMonitor:
             self._poor_frames = 0
         if self._poor_frames >= p.poverty_frames:
             self._raise(
-                "feature_poverty", t_s,
+                "feature_poverty",
+                t_s,
                 f"{health.tracked_features} tracked features (< {p.min_tracked_features}) for "
                 f"{self._poor_frames} frames",
             )
         if estimate is not None and all(np.all(np.isfinite(x)) for x in (estimate.v_WB, estimate.R_WB)):
             self._speed_m_s = float(np.linalg.norm(estimate.v_WB))
-            self._attitude = (float(estimate.t_s), np.array(estimate.R_WB, dtype=float),
-                              np.array(estimate.gyro_bias_rad_s, dtype=float),
-                              np.array(estimate.accel_bias_m_s2, dtype=float))
+            self._attitude = (
+                float(estimate.t_s),
+                np.array(estimate.R_WB, dtype=float),
+                np.array(estimate.gyro_bias_rad_s, dtype=float),
+                np.array(estimate.accel_bias_m_s2, dtype=float),
+            )
         # Initialization.
         if estimate is not None and not self._init_checked:
             self._init_checked = True
@@ -367,7 +226,8 @@ class HealthMonitor:
         if t - self._unexcited_since >= p.excitation_hold_s:
             self._excitation_ok = False
             self._raise(
-                "insufficient_excitation", t,
+                "insufficient_excitation",
+                t,
                 f"world acceleration RMS {accel_rms:.3f} m/s^2 (< {p.min_accel_m_s2}) and gyro norm "
                 f"{gyro_norm:.3f} rad/s (< {p.min_gyro_norm_rad_s}) over {p.excitation_window_s} s at "
                 f"{self._speed_m_s:.2f} m/s: scale unobservable, a scale error grows the position error "
@@ -383,14 +243,16 @@ class HealthMonitor:
             still = float(np.max(np.std(accel, axis=0))) < 0.5
             if still and abs(g_norm - GRAVITY_M_S2) > p.gravity_norm_tol_m_s2:
                 self._raise(
-                    "initialization_failure", t_s,
+                    "initialization_failure",
+                    t_s,
                     f"gravity norm at init {g_norm:.3f} m/s^2 differs from {GRAVITY_M_S2} by more than "
                     f"{p.gravity_norm_tol_m_s2}",
                 )
         bg = float(np.linalg.norm(est.gyro_bias_rad_s))
         if bg > p.max_init_gyro_bias_rad_s:
             self._raise(
-                "initialization_failure", t_s,
+                "initialization_failure",
+                t_s,
                 f"initial gyro bias {bg:.3f} rad/s beyond {p.max_init_gyro_bias_rad_s} rad/s",
             )
 
@@ -405,17 +267,16 @@ class HealthMonitor:
         if not finite:
             self._raise("divergence", t_s, "non-finite value in the estimate or covariance")
             return
-        sigma = float(np.sqrt(max(np.max(np.diag(est.cov)[3:6]), 0.0)))
+        sigma = float(np.sqrt(max(np.max(np.diag(est.cov_position_W_m2)), 0.0)))
         if sigma > p.max_position_sigma_m:
-            self._raise(
-                "divergence", t_s, f"position sigma {sigma:.2f} m beyond {p.max_position_sigma_m} m"
-            )
+            self._raise("divergence", t_s, f"position sigma {sigma:.2f} m beyond {p.max_position_sigma_m} m")
         moving = self._speed_m_s > p.min_sync_speed_m_s
         if self._last_used_t is None or health.updated_features > 0 or not moving:
             self._last_used_t = t_s
         elif health.tracked_features >= p.min_tracked_features and t_s - self._last_used_t > p.max_unused_s:
             self._raise(
-                "divergence", t_s,
+                "divergence",
+                t_s,
                 f"{health.tracked_features} features tracked but none used in an update for "
                 f"{t_s - self._last_used_t:.1f} s at {self._speed_m_s:.2f} m/s: the images do not fit the "
                 "state",
@@ -439,7 +300,8 @@ class HealthMonitor:
         if mean_nis <= p.max_nis_per_dof or not moving:
             return
         self._raise(
-            "time_sync_or_extrinsic_suspected", t_s,
+            "time_sync_or_extrinsic_suspected",
+            t_s,
             f"mean NIS per dof {mean_nis:.2f} (> {p.max_nis_per_dof}) over {len(arr)} updates while moving "
             f"(mean {mean_v:.2f} m/s, {mean_w:.2f} rad/s); correlation with angular speed "
             f"{_pearson(arr[:, 0], arr[:, 1]):.2f}, with linear speed {_pearson(arr[:, 0], arr[:, 2]):.2f}; "
@@ -454,15 +316,28 @@ class HealthMonitor:
         dt, sig_t = c.time_offset_s, c.time_offset_sigma_s
         if np.isfinite(dt) and abs(dt) > max(p.min_time_offset_change_s, k * sig_t):
             self._raise(
-                "time_offset_miscalibrated", t_s,
+                "time_offset_miscalibrated",
+                t_s,
                 f"online calibration moved the camera-IMU time offset by {dt * 1e3:+.2f} ms (sigma "
                 f"{sig_t * 1e3:.2f} ms, limits {p.min_time_offset_change_s * 1e3:.1f} ms and {k:g} sigma)",
             )
         for what, d, sig, lim, unit, scale in (
-            ("rotation", c.rotation_BC_rad, c.rotation_sigma_rad, p.min_rotation_change_rad, "deg",
-             np.rad2deg(1.0)),
-            ("translation", c.translation_BC_m, c.translation_sigma_m, p.min_translation_change_m, "cm",
-             100.0),
+            (
+                "rotation",
+                c.rotation_BC_rad,
+                c.rotation_sigma_rad,
+                p.min_rotation_change_rad,
+                "deg",
+                np.rad2deg(1.0),
+            ),
+            (
+                "translation",
+                c.translation_BC_m,
+                c.translation_sigma_m,
+                p.min_translation_change_m,
+                "cm",
+                100.0,
+            ),
         ):
             d, sig = np.asarray(d, dtype=float), np.asarray(sig, dtype=float)
             if not np.all(np.isfinite(d)):
@@ -470,7 +345,8 @@ class HealthMonitor:
             z = float(np.max(np.abs(d) / np.maximum(sig, 1e-12)))
             if float(np.linalg.norm(d)) > lim and z > k:
                 self._raise(
-                    "extrinsic_miscalibrated", t_s,
+                    "extrinsic_miscalibrated",
+                    t_s,
                     f"online calibration moved the camera-IMU {what} by "
                     f"{np.array2string(d * scale, precision=2)} {unit} (largest {z:.1f} sigma, limits "
                     f"{lim * scale:.2f} {unit} and {k:g} sigma)",
@@ -483,66 +359,3 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float:
     if sa < 1e-12 or sb < 1e-12:
         return 0.0
     return float(np.mean((a - a.mean()) * (b - b.mean())) / (sa * sb))
-
-
-@dataclass
-class MonitoredRun:
-    """Output of :func:`monitor_run`.
-
-    Attributes:
-        estimates: Estimate after each frame (None before initialization).
-        frame_t_imu_s: Frame times on the IMU clock, shape (F,).
-        health: Estimator health after each frame.
-        active: Monitor's active set after each frame.
-        monitor: The monitor (``report()`` for the conditions).
-    """
-
-    estimates: list[StateEstimate | None]
-    frame_t_imu_s: np.ndarray
-    health: list[HealthStatus]
-    active: list[set[str]]
-    monitor: HealthMonitor
-
-
-def monitor_run(
-    estimator: Estimator,
-    imu: ImuSeries,
-    frames: Iterable[CameraFrame],
-    time_offset_s: float,
-    monitor: HealthMonitor | None = None,
-    stop_on_divergence: bool = True,
-) -> MonitoredRun:
-    """Replay IMU samples and camera frames in IMU-clock order through ``estimator`` with a monitor.
-
-    Args:
-        estimator: Any estimator.
-        imu: IMU series (N samples).
-        frames: Camera frames in time order (camera clock).
-        time_offset_s: ``t_imu = t_cam + time_offset_s`` used to interleave the streams (the true offset).
-        monitor: Monitor to feed (a default one when None).
-        stop_on_divergence: Stop after the first frame whose health reports divergence.
-    """
-    mon = monitor if monitor is not None else HealthMonitor()
-    out = MonitoredRun([], np.zeros(0), [], [], mon)
-    times: list[float] = []
-    i = 0
-    n = len(imu)
-    for frame in frames:
-        t_imu = float(frame.t_s) + time_offset_s
-        while i < n and imu.t_s[i] <= t_imu:
-            s = imu.sample(i)
-            estimator.feed_imu(s)
-            mon.observe_imu(s)
-            i += 1
-        estimator.feed_camera(frame)
-        h = estimator.health()
-        est = estimator.estimate()
-        mon.observe_frame(t_imu, h, est)
-        times.append(t_imu)
-        out.estimates.append(est)
-        out.health.append(h)
-        out.active.append(mon.active())
-        if h.diverged and stop_on_divergence:
-            break
-    out.frame_t_imu_s = np.array(times)
-    return out

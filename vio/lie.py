@@ -74,11 +74,7 @@ def right_jacobian_so3(phi: np.ndarray) -> np.ndarray:
     k = skew(phi)
     if angle < 1e-6:
         return np.eye(3) - 0.5 * k + k @ k / 6.0
-    return (
-        np.eye(3)
-        - ((1.0 - np.cos(angle)) / angle**2) * k
-        + ((angle - np.sin(angle)) / angle**3) * k @ k
-    )
+    return np.eye(3) - ((1.0 - np.cos(angle)) / angle**2) * k + ((angle - np.sin(angle)) / angle**3) * k @ k
 
 
 def left_jacobian_so3(phi: np.ndarray) -> np.ndarray:
@@ -93,9 +89,7 @@ def right_jacobian_inv_so3(phi: np.ndarray) -> np.ndarray:
     if angle < 1e-6:
         return np.eye(3) + 0.5 * k + k @ k / 12.0
     return (
-        np.eye(3)
-        + 0.5 * k
-        + (1.0 / angle**2 - (1.0 + np.cos(angle)) / (2.0 * angle * np.sin(angle))) * k @ k
+        np.eye(3) + 0.5 * k + (1.0 / angle**2 - (1.0 + np.cos(angle)) / (2.0 * angle * np.sin(angle))) * k @ k
     )
 
 

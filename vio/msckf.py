@@ -16,23 +16,22 @@ updating and never raises from numpy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.frontend import FeatureDatabase, FrontEnd, KltParams, Tracks, make_frontend
+from viotb.vio.frontend import FeatureDatabase, FrontEnd, Tracks, make_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
+from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lie import log_so3
-from viotb.vio.propagator import Integration, Propagator
+from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
+from viotb.vio.msckf_params import MsckfParams
+from viotb.vio.propagator import Propagator
 from viotb.vio.state import (
-    BA,
-    BG,
     EXTRINSIC_BLOCK,
     IMU_BLOCK,
     POS,
-    THETA,
     TIME_OFFSET_BLOCK,
-    VEL,
     ImuValues,
     State,
     ekf_update,
@@ -41,9 +40,8 @@ from viotb.vio.state import (
     marginalize_oldest_clone,
     read_init_record,
 )
-from viotb.vio.triangulation import TriangulationParams, triangulate
+from viotb.vio.triangulation import triangulate
 from viotb.vio.types import (
-    GRAVITY_M_S2,
     CalibrationDrift,
     CameraFrame,
     HealthStatus,
@@ -59,107 +57,7 @@ from viotb.vio.update_helpers import (
     nullspace_project,
     observability_constrain,
 )
-
-
-@dataclass(frozen=True)
-class MsckfParams:
-    """MSCKF settings (defaults near open_vins' EuRoC configuration).
-
-    Attributes:
-        max_clones: Clones in the sliding window (10-15).
-        excitation_accel_bias_sigma_m_s2: Above this horizontal accelerometer-bias sigma (m/s^2) the filter
-            asks for excitation (:meth:`MsckfEstimator.wants_excitation`).
-        keyframe_min_parallax_px: Median feature motion (px) since the last clone that makes a frame a
-            clone before ``clone_every_n_frames`` is reached.
-        clone_every_n_frames: Clone (and update) at least on every n-th frame; the front end still tracks
-            every frame. Spacing the clones widens the window's baseline (keyframing, lesson ch. 8): a
-            hovering drone moves millimetres per frame, too little parallax to triangulate within 11
-            consecutive frames.
-        max_features_per_update: Most features used in one update (longest tracks first).
-        min_track_length: Fewest clone observations for a feature to be used.
-        pixel_sigma_px: Feature measurement noise (px).
-        chi2_multiplier: Multiplier on the 95 % chi-square gate of each feature.
-        integration: IMU integration method.
-        use_fej: First-estimates Jacobians (FEJ) in the IMU propagation.
-        update_linearization: Where the MSCKF update's Jacobians are evaluated. ``"current_oc"`` (default):
-            at the current clone estimates (where the residual is), then projected so that they annihilate
-            the four unobservable directions at the clones' first estimates (observability-constrained
-            update, Hesch et al. TRO 2014). ``"first_estimates"``: at the first estimates (open_vins
-            ``do_fej``); measured overconfident here: clones move 1-7 cm and 0.1-0.8 deg from their first
-            estimates within the window, and with ~1000 rows per update that Jacobian mismatch exceeds the
-            claimed precision. Position ANEES over 20 seeds x 20 s of ``tests/test_msckf.py``'s synthetic
-            flight (95 % band [2.02, 4.16], 3 expected): 4.53 first estimates, 3.37 current, 3.21
-            current_oc; over 12 seeds x 60 s (band [1.77, 4.53]): 3.97, 4.35 (orientation NEES 10.1: yaw
-            becomes spuriously observable) and 3.52. ``"current"``: plain EKF Jacobians. Only used when
-            ``use_fej`` is True; otherwise ``"current"``.
-        frontend: ``"klt"`` (images) or ``"sim"`` (``frame.features``).
-        klt: KLT settings.
-        triangulation: Triangulation settings.
-        zupt_enabled: Zero-velocity updates while stationary.
-        zupt_max_disparity_px: Largest median feature motion (px) between frames to consider a ZUPT.
-        zupt_min_features: Fewest common features to measure the disparity.
-        zupt_max_velocity_m_s: Largest estimated speed (m/s) to consider a ZUPT.
-        zupt_noise_multiplier: Inflation of the IMU noise in the ZUPT measurement (vibration).
-        zupt_velocity_sigma_m_s: Noise (m/s) of the zero-velocity rows.
-        zupt_update_accel: Let the ZUPT's accelerometer rows update tilt and accelerometer bias (they always
-            take part in the stillness test).
-        zupt_only_at_beginning: Allow ZUPTs only until the platform first moves (open_vins'
-            ``zupt_only_at_beginning``). A hovering drone reads like a still one to the IMU (specific force
-            ~ +g z, zero rate) and barely moves its features, so a ZUPT in the air pins a velocity that is not
-            zero: measured 10 cm of unseen drift in 3 s of closed-loop hover before this option.
-        estimate_extrinsics: Estimate ``R_BC, p_BC`` online.
-        extrinsic_sigma_rad: Prior sigma (rad) of the extrinsic rotation.
-        extrinsic_sigma_m: Prior sigma (m) of the extrinsic translation.
-        estimate_time_offset: Estimate the camera-IMU time offset online.
-        time_offset_sigma_s: Prior sigma (s) of the time offset.
-        max_position_sigma_m: Position sigma (m) beyond which the filter declares divergence.
-        runaway_frames: Consecutive frames with most features failing the gate that declare divergence.
-        runaway_min_features: Fewest gated features for a frame to count towards ``runaway_frames``.
-        runaway_reject_ratio: Rejected fraction above which a frame counts as runaway.
-    """
-
-    max_clones: int = 11
-    clone_every_n_frames: int = 6
-    keyframe_min_parallax_px: float = 3.0
-    excitation_accel_bias_sigma_m_s2: float = 0.02
-    max_features_per_update: int = 50
-    min_track_length: int = 3
-    pixel_sigma_px: float = 1.0
-    chi2_multiplier: float = 1.0
-    integration: Integration = Integration.RK4
-    use_fej: bool = True
-    update_linearization: str = "current_oc"
-    frontend: str = "klt"
-    klt: KltParams = field(default_factory=KltParams)
-    triangulation: TriangulationParams = field(default_factory=TriangulationParams)
-    zupt_enabled: bool = True
-    zupt_max_disparity_px: float = 0.5
-    zupt_min_features: int = 10
-    zupt_max_velocity_m_s: float = 0.2
-    zupt_noise_multiplier: float = 10.0
-    zupt_velocity_sigma_m_s: float = 0.01
-    zupt_only_at_beginning: bool = True
-    zupt_update_accel: bool = False
-    estimate_extrinsics: bool = False
-    extrinsic_sigma_rad: float = 0.005
-    extrinsic_sigma_m: float = 0.005
-    estimate_time_offset: bool = False
-    time_offset_sigma_s: float = 0.005
-    max_position_sigma_m: float = 100.0
-    runaway_frames: int = 10
-    runaway_min_features: int = 5
-    runaway_reject_ratio: float = 0.7
-
-    def with_online_calibration(
-        self, time_offset_sigma_s: float = 0.02, extrinsic_sigma_rad: float = 0.05
-    ) -> MsckfParams:
-        """These settings with the time offset and the extrinsics estimated online (wide priors).
-
-        The fix of the time-sync / extrinsic failure mode; with both on, the calibration that moves names
-        the cause (:class:`viotb.vio.health.HealthMonitor`).
-        """
-        return replace(self, estimate_time_offset=True, time_offset_sigma_s=time_offset_sigma_s,
-                       estimate_extrinsics=True, extrinsic_sigma_rad=extrinsic_sigma_rad)
+from viotb.vio.zero_velocity import ZeroVelocityDetector
 
 
 @dataclass(frozen=True)
@@ -240,9 +138,10 @@ class MsckfEstimator:
         self._pred_cache: tuple[int, float, ImuValues, np.ndarray, np.ndarray] | None = None
         self.last_stats = UpdateStats()
         self.zupt_count = 0
-        self._has_moved = False
-        self._frames_since_clone = 0
-        self._keyframe_tracks: Tracks | None = None
+        self.keyframe_rule = KeyframeSelector(p.keyframing)
+        self.zero_velocity = ZeroVelocityDetector(
+            p.zero_velocity, noise, p.chi2_multiplier * float(self.chi2(9))
+        )
 
     # ------------------------------------------------------------------ protocol
     def initialize(self, init: object) -> None:
@@ -260,15 +159,15 @@ class MsckfEstimator:
         self._health = HealthStatus(t_s=t_s, initialized=True)
         # Only a static initialization proves the platform is at rest; after any other (dynamic, or from an
         # external source such as a perturbed truth in the Gymnasium envs) the ZUPT stays off when
-        # ``zupt_only_at_beginning``.
-        self._has_moved = getattr(init, "method", "static") != "static"
+        # ``zero_velocity.only_at_beginning``.
+        self.zero_velocity.has_moved = getattr(init, "method", "static") != "static"
 
     def feed_imu(self, sample: ImuSample) -> None:
         """Buffer one IMU reading (ValueError naming value/time on NaN/inf or non-increasing time)."""
         self.propagator.feed_imu(sample)
         self._last_imu = sample
         if self.state is None and self.initializer is not None:
-            self.initializer.feed_imu(sample)  # type: ignore[attr-defined]
+            self.initializer.feed_imu(sample)
 
     def feed_camera(self, frame: CameraFrame) -> None:
         """Track features, propagate, and update (see the module docstring for the degraded modes)."""
@@ -311,9 +210,14 @@ class MsckfEstimator:
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
         return StateEstimate(
-            t_s=t_out, R_WB=vals.R_WB.copy(), p_WB=vals.p_WB.copy(), v_WB=vals.v_WB.copy(),
-            gyro_bias_rad_s=vals.gyro_bias_rad_s.copy(), accel_bias_m_s2=vals.accel_bias_m_s2.copy(),
-            omega_B_rad_s=omega, cov=0.5 * (cov + cov.T),
+            t_s=t_out,
+            R_WB=vals.R_WB.copy(),
+            p_WB=vals.p_WB.copy(),
+            v_WB=vals.v_WB.copy(),
+            gyro_bias_rad_s=vals.gyro_bias_rad_s.copy(),
+            accel_bias_m_s2=vals.accel_bias_m_s2.copy(),
+            omega_B_rad_s=omega,
+            cov=0.5 * (cov + cov.T),
         )
 
     def health(self) -> HealthStatus:
@@ -322,51 +226,43 @@ class MsckfEstimator:
 
     def last_tracks_px(self) -> np.ndarray:
         """Distorted pixels of the features tracked in the latest frame, shape (M, 2) (for viewers)."""
-        tracks = getattr(self, "_prev_tracks", None)
+        tracks = self._prev_tracks
         return np.zeros((0, 2)) if tracks is None else tracks.uv_px
 
     def wants_excitation(self) -> bool:
         """True while the horizontal accelerometer bias is still poorly known.
 
-        After a static initialization the accelerometer bias along x and y is confounded with roll and
-        pitch until the platform rotates and accelerates (lesson ch. 6-8: "design the motion in"); a runner
-        answers with an excitation manoeuvre. Threshold: ``params.excitation_accel_bias_sigma_m_s2``.
+        See :func:`viotb.vio.lifecycle.excitation_wanted`; the threshold is
+        ``params.excitation_accel_bias_sigma_m_s2``.
         """
         st = self.state
         if st is None:
             return False
         P = marginal_covariance(st, [st.block(IMU_BLOCK)])
-        sigma_ba_xy = np.sqrt(np.max(np.diag(P)[12:14]))
-        return bool(sigma_ba_xy > self.params.excitation_accel_bias_sigma_m_s2)
+        return excitation_wanted(P, self.params.excitation_accel_bias_sigma_m_s2)
+
+    def feed_truth(self, truth: StateEstimate) -> None:
+        """Truth is not used by the filter (no-op; part of :class:`viotb.vio.types.Estimator`)."""
 
     # ------------------------------------------------------------------ internals
     def _try_initialize(self, tracks: Tracks) -> None:
-        init = None
-        if self.initializer is not None:
-            if len(tracks):
-                self.initializer.feed_features(tracks.t_imu_s, tracks.ids, tracks.xy_norm)  # type: ignore[attr-defined]
-            init = self.initializer.try_initialize()  # type: ignore[attr-defined]
+        init, health = attempt_initialization(self.initializer, tracks)
         if init is not None:
             self.initialize(init)
-        conditions = () if init is not None else ("waiting_for_init",)
-        self._health = HealthStatus(
-            t_s=tracks.t_cam_s, initialized=self.state is not None, tracked_features=len(tracks),
-            conditions=conditions,
-        )
+        self._health = health
 
     def _make_health(
         self, t_s: float, tracks: Tracks, stats: UpdateStats, conditions: tuple[str, ...]
     ) -> HealthStatus:
-        conds = list(conditions)
-        if len(tracks) == 0:
-            conds.append("no_features")
-        elif len(tracks) < 20:
-            conds.append("feature_poverty")
-        return HealthStatus(
-            t_s=t_s, initialized=True, tracked_features=len(tracks), updated_features=stats.used,
-            chi2_rejections=stats.rejected, diverged=bool(self._diverged_reason),
-            reason=self._diverged_reason,
-            conditions=tuple(conds), nis_per_dof=stats.nis_per_dof, nis_per_dof_all=stats.nis_per_dof_all,
+        return frame_health(
+            t_s,
+            tracks,
+            self._diverged_reason,
+            updated_features=stats.used,
+            conditions=conditions,
+            chi2_rejections=stats.rejected,
+            nis_per_dof=stats.nis_per_dof,
+            nis_per_dof_all=stats.nis_per_dof_all,
             calibration=self._calibration_drift(),
         )
 
@@ -405,17 +301,15 @@ class MsckfEstimator:
         self.propagator.propagate(st, t_imu)
         self._version += 1
         conditions: list[str] = []
-        zupt_allowed = p.zupt_enabled and not (p.zupt_only_at_beginning and self._has_moved)
-        if zupt_allowed and self._try_zupt(tracks, t_imu):
+        if self.zero_velocity.allowed() and self._try_zupt(tracks, t_imu):
             conditions.append("zupt")
             self.zupt_count += 1
             stats = UpdateStats()
-        elif not self._is_keyframe(tracks):
-            self._frames_since_clone += 1
+        elif not self.keyframe_rule.is_keyframe(tracks):
+            self.keyframe_rule.skip()
             stats = UpdateStats()
         else:
-            self._frames_since_clone = 0
-            self._keyframe_tracks = tracks
+            self.keyframe_rule.accept(tracks)
             self.propagator.propagate_and_clone(st, frame.t_s)
             self.database.add(frame.t_s, tracks.ids, tracks.xy_norm)
             stats = self._msckf_update(frame.t_s)
@@ -429,23 +323,6 @@ class MsckfEstimator:
         self.last_stats = stats
         self._health = self._make_health(frame.t_s, tracks, stats, tuple(conditions))
 
-    def _is_keyframe(self, tracks: Tracks) -> bool:
-        """Parallax-based keyframe test (VINS-Mono's rule; lesson ch. 8 "keyframe selection").
-
-        A frame becomes a clone when the median pixel motion of the features shared with the last clone
-        reaches ``keyframe_min_parallax_px``, when fewer than half of them are still tracked, or after
-        ``clone_every_n_frames`` frames at the latest (1 = every frame is a clone).
-        """
-        p = self.params
-        if self._frames_since_clone + 1 >= p.clone_every_n_frames or self._keyframe_tracks is None:
-            return True
-        ref = self._keyframe_tracks
-        _, i_ref, i_now = np.intersect1d(ref.ids, tracks.ids, return_indices=True)
-        if len(i_now) < max(0.5 * len(ref.ids), 1):
-            return True
-        parallax = np.median(np.linalg.norm(tracks.uv_px[i_now] - ref.uv_px[i_ref], axis=1))
-        return bool(parallax >= p.keyframe_min_parallax_px)
-
     def _check_divergence(self, stats: UpdateStats) -> None:
         st = self.state
         assert st is not None
@@ -456,7 +333,7 @@ class MsckfEstimator:
         if not is_psd(st, tol=1e-9):
             self._declare_divergence("covariance is not positive semi-definite")
             return
-        pos_sigma = float(np.sqrt(np.max(np.diag(st.cov)[POS:POS + 3])))
+        pos_sigma = float(np.sqrt(np.max(np.diag(st.cov)[POS : POS + 3])))
         if pos_sigma > p.max_position_sigma_m:
             self._declare_divergence(
                 f"position sigma {pos_sigma:.1f} m exceeds max_position_sigma_m={p.max_position_sigma_m}"
@@ -475,55 +352,23 @@ class MsckfEstimator:
             )
 
     def _try_zupt(self, tracks: Tracks, t_imu: float) -> bool:
-        """Zero-velocity update when features barely move and the IMU agrees (open_vins ZUPT idea)."""
+        """Zero-velocity update when features barely move and the IMU agrees (:mod:`.zero_velocity`)."""
         st = self.state
         assert st is not None
-        p = self.params
-        prev = self._prev_tracks
-        if prev is None or self._prev_frame_t_imu is None or len(tracks) == 0 or len(prev) == 0:
+        prev, t0 = self._prev_tracks, self._prev_frame_t_imu
+        if prev is None or t0 is None:
             return False
-        _, ia, ib = np.intersect1d(tracks.ids, prev.ids, assume_unique=True, return_indices=True)
-        if len(ia) < p.zupt_min_features:
-            return False
-        disparity_px = float(np.median(np.linalg.norm(tracks.uv_px[ia] - prev.uv_px[ib], axis=1)))
-        if disparity_px > p.zupt_max_disparity_px or np.linalg.norm(st.imu.v_WB) > p.zupt_max_velocity_m_s:
-            self._has_moved = True
-            return False
-        t0 = self._prev_frame_t_imu
-        if t_imu - t0 <= 1e-6:
-            return False
-        _, g, a = self.propagator.readings(t0, t_imu)
-        T = t_imu - t0
-        # Rows: mean gyro = b_g, mean accel = R^T (0, 0, g) + b_a, velocity = 0.
-        g_up_B = st.imu.R_WB.T @ np.array([0.0, 0.0, GRAVITY_M_S2])
-        r = np.concatenate([
-            g.mean(axis=0) - st.imu.gyro_bias_rad_s,
-            a.mean(axis=0) - g_up_B - st.imu.accel_bias_m_s2,
-            -st.imu.v_WB,
-        ])
-        H = np.zeros((9, st.dim))
-        H[0:3, BG:BG + 3] = np.eye(3)
-        H[3:6, THETA:THETA + 3] = np.array(
-            [[0.0, -g_up_B[2], g_up_B[1]], [g_up_B[2], 0.0, -g_up_B[0]], [-g_up_B[1], g_up_B[0], 0.0]]
+        test = self.zero_velocity.detect(
+            prev, tracks, t_imu - t0, st.imu, st.cov, lambda: self.propagator.readings(t0, t_imu)[1:]
         )
-        H[3:6, BA:BA + 3] = np.eye(3)
-        H[6:9, VEL:VEL + 3] = np.eye(3)
-        m2 = p.zupt_noise_multiplier**2
-        R = np.diag(
-            [m2 * self.noise.gyro_noise_density_rad_s_sqrthz**2 / T] * 3
-            + [m2 * self.noise.accel_noise_density_m_s2_sqrthz**2 / T] * 3
-            + [p.zupt_velocity_sigma_m_s**2] * 3
-        )
-        S = H @ st.cov @ H.T + R
-        chi2 = float(r @ np.linalg.solve(S, r))
-        if chi2 > p.chi2_multiplier * float(self.chi2(9)):
+        if test is None:
             return False
         # All 9 rows test stillness; by default only the gyro and velocity rows update the state. The
         # accelerometer rows would write any small acceleration at the onset of motion (a min-jerk takeoff
         # starts with zero acceleration, below the gate) into the accelerometer bias: measured 0.2 m/s^2,
         # then 0.2-0.3 m of altitude error over a 1.2 s climb.
-        rows = np.arange(9) if p.zupt_update_accel else np.r_[0:3, 6:9]
-        ekf_update(st, H[rows], r[rows], R[np.ix_(rows, rows)])
+        rows = np.arange(9) if self.params.zupt_update_accel else np.r_[0:3, 6:9]
+        ekf_update(st, test.H[rows], test.r[rows], test.R[np.ix_(rows, rows)])
         return True
 
     def _msckf_update(self, t_now: float) -> UpdateStats:
@@ -581,10 +426,10 @@ class MsckfEstimator:
         H_pose = jac.H_pose * w[..., None]
         for k, t in enumerate(times):
             o = st.clone_block(float(t)).offset
-            H_x[:, 2 * k:2 * k + 2, o:o + 6] = H_pose[:, k]
+            H_x[:, 2 * k : 2 * k + 2, o : o + 6] = H_pose[:, k]
         if st.has_block(EXTRINSIC_BLOCK):
             o = st.block(EXTRINSIC_BLOCK).offset
-            H_x[:, :, o:o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * K, 6)
+            H_x[:, :, o : o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * K, 6)
         # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
         H_o, r_o = nullspace_project(H_x, H_f, r)
         if p.use_fej and p.update_linearization == "current_oc":
@@ -606,8 +451,16 @@ class MsckfEstimator:
         passed = chi2 < p.chi2_multiplier * self.chi2(dof)
         n_pass = int(passed.sum())
         nis = chi2 / dof
-        stats = UpdateStats(n_cand, F, n_pass, int(F - n_pass), int(dof[passed].sum()), n_bad,
-                            float(np.mean(nis[passed])) if n_pass else float("nan"), float(np.mean(nis)))
+        stats = UpdateStats(
+            n_cand,
+            F,
+            n_pass,
+            int(F - n_pass),
+            int(dof[passed].sum()),
+            n_bad,
+            float(np.mean(nis[passed])) if n_pass else float("nan"),
+            float(np.mean(nis)),
+        )
         if n_pass == 0:
             return stats
         # 6. Stack, compress (QR) and update.

@@ -116,9 +116,9 @@ class ImuBuffer:
         if k <= 0:
             return
         m = self._n - k
-        self._t[:m] = self._t[k:self._n]
-        self._gyro[:m] = self._gyro[k:self._n]
-        self._accel[:m] = self._accel[k:self._n]
+        self._t[:m] = self._t[k : self._n]
+        self._gyro[:m] = self._gyro[k : self._n]
+        self._accel[:m] = self._accel[k : self._n]
         self._n = m
 
 
@@ -192,8 +192,8 @@ def integrate_step(
         Ra = R0 @ a
         v1 = v0 + (g + Ra) * dt
         p1 = p0 + v0 * dt + 0.5 * (g + Ra) * dt * dt
-        phi[VEL:VEL + 3, BA:BA + 3] = -R0 * dt
-        phi[POS:POS + 3, BA:BA + 3] = -0.5 * R0 * dt * dt
+        phi[VEL : VEL + 3, BA : BA + 3] = -R0 * dt
+        phi[POS : POS + 3, BA : BA + 3] = -0.5 * R0 * dt * dt
     else:
         half = 0.5 * dt
         theta_m = w0 * half + (w1 - w0) * (half * half) / (2.0 * dt)
@@ -207,16 +207,18 @@ def integrate_step(
         # d f(tau) / d b_g = R(tau) [a(tau)]x Jr(theta(tau)) tau, since theta(tau) holds -b_g tau.
         Jm = Rm @ skew(am) @ right_jacobian_so3(theta_m) * half
         J1 = R1 @ skew(a1) @ right_jacobian_so3(theta) * dt
-        phi[VEL:VEL + 3, BG:BG + 3] = dt / 6.0 * (4.0 * Jm + J1)
-        phi[POS:POS + 3, BG:BG + 3] = dt * dt / 6.0 * (2.0 * Jm)
-        phi[VEL:VEL + 3, BA:BA + 3] = -dt / 6.0 * (R0 + 4.0 * Rm + R1)
-        phi[POS:POS + 3, BA:BA + 3] = -dt * dt / 6.0 * (R0 + 2.0 * Rm)
+        phi[VEL : VEL + 3, BG : BG + 3] = dt / 6.0 * (4.0 * Jm + J1)
+        phi[POS : POS + 3, BG : BG + 3] = dt * dt / 6.0 * (2.0 * Jm)
+        phi[VEL : VEL + 3, BA : BA + 3] = -dt / 6.0 * (R0 + 4.0 * Rm + R1)
+        phi[POS : POS + 3, BA : BA + 3] = -dt * dt / 6.0 * (R0 + 2.0 * Rm)
     fej = imu if imu_fej is None else imu_fej
-    phi[THETA:THETA + 3, THETA:THETA + 3] = R1.T @ fej.R_WB
-    phi[THETA:THETA + 3, BG:BG + 3] = -right_jacobian_so3(theta) * dt
-    phi[VEL:VEL + 3, THETA:THETA + 3] = -skew(v1 - fej.v_WB - g * dt) @ fej.R_WB
-    phi[POS:POS + 3, THETA:THETA + 3] = -skew(p1 - fej.p_WB - fej.v_WB * dt - 0.5 * g * dt * dt) @ fej.R_WB
-    phi[POS:POS + 3, VEL:VEL + 3] = np.eye(3) * dt
+    phi[THETA : THETA + 3, THETA : THETA + 3] = R1.T @ fej.R_WB
+    phi[THETA : THETA + 3, BG : BG + 3] = -right_jacobian_so3(theta) * dt
+    phi[VEL : VEL + 3, THETA : THETA + 3] = -skew(v1 - fej.v_WB - g * dt) @ fej.R_WB
+    phi[POS : POS + 3, THETA : THETA + 3] = (
+        -skew(p1 - fej.p_WB - fej.v_WB * dt - 0.5 * g * dt * dt) @ fej.R_WB
+    )
+    phi[POS : POS + 3, VEL : VEL + 3] = np.eye(3) * dt
     new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
     return new, phi
 
@@ -228,14 +230,14 @@ def discrete_noise(phi: np.ndarray, noise: ImuNoise, dt: float) -> np.ndarray:
     its input matrix is the bias columns of ``phi`` (rows theta, p, v); the random walks add
     ``density^2 dt`` on the bias blocks.
     """
-    Bg = phi[:9, BG:BG + 3]
-    Ba = phi[:9, BA:BA + 3]
+    Bg = phi[:9, BG : BG + 3]
+    Ba = phi[:9, BA : BA + 3]
     Q = np.zeros((IMU_DIM, IMU_DIM))
     Q[:9, :9] = (noise.gyro_noise_density_rad_s_sqrthz**2 / dt) * (Bg @ Bg.T) + (
         noise.accel_noise_density_m_s2_sqrthz**2 / dt
     ) * (Ba @ Ba.T)
-    Q[BG:BG + 3, BG:BG + 3] = np.eye(3) * noise.gyro_random_walk_rad_s2_sqrthz**2 * dt
-    Q[BA:BA + 3, BA:BA + 3] = np.eye(3) * noise.accel_random_walk_m_s3_sqrthz**2 * dt
+    Q[BG : BG + 3, BG : BG + 3] = np.eye(3) * noise.gyro_random_walk_rad_s2_sqrthz**2 * dt
+    Q[BA : BA + 3, BA : BA + 3] = np.eye(3) * noise.accel_random_walk_m_s3_sqrthz**2 * dt
     return Q
 
 

@@ -78,8 +78,11 @@ class ImuValues:
     def copy(self) -> ImuValues:
         """Deep copy."""
         return ImuValues(
-            self.R_WB.copy(), self.p_WB.copy(), self.v_WB.copy(),
-            self.gyro_bias_rad_s.copy(), self.accel_bias_m_s2.copy(),
+            self.R_WB.copy(),
+            self.p_WB.copy(),
+            self.v_WB.copy(),
+            self.gyro_bias_rad_s.copy(),
+            self.accel_bias_m_s2.copy(),
         )
 
 
@@ -209,21 +212,21 @@ class State:
     def _boxplus(self, dx: np.ndarray) -> None:
         """Apply an error-state correction ``dx`` (dim,) to every block."""
         imu = self.imu
-        imu.R_WB = imu.R_WB @ exp_so3(dx[THETA:THETA + 3])
-        imu.p_WB = imu.p_WB + dx[POS:POS + 3]
-        imu.v_WB = imu.v_WB + dx[VEL:VEL + 3]
-        imu.gyro_bias_rad_s = imu.gyro_bias_rad_s + dx[BG:BG + 3]
-        imu.accel_bias_m_s2 = imu.accel_bias_m_s2 + dx[BA:BA + 3]
+        imu.R_WB = imu.R_WB @ exp_so3(dx[THETA : THETA + 3])
+        imu.p_WB = imu.p_WB + dx[POS : POS + 3]
+        imu.v_WB = imu.v_WB + dx[VEL : VEL + 3]
+        imu.gyro_bias_rad_s = imu.gyro_bias_rad_s + dx[BG : BG + 3]
+        imu.accel_bias_m_s2 = imu.accel_bias_m_s2 + dx[BA : BA + 3]
         if EXTRINSIC_BLOCK in self._blocks:
             o = self._blocks[EXTRINSIC_BLOCK].offset
-            self.R_BC = self.R_BC @ exp_so3(dx[o:o + 3])
-            self.p_BC = self.p_BC + dx[o + 3:o + 6]
+            self.R_BC = self.R_BC @ exp_so3(dx[o : o + 3])
+            self.p_BC = self.p_BC + dx[o + 3 : o + 6]
         if TIME_OFFSET_BLOCK in self._blocks:
             self.time_offset_s += float(dx[self._blocks[TIME_OFFSET_BLOCK].offset])
         for t, clone in self.clones.items():
             o = self._blocks[self.clone_name(t)].offset
-            clone.R_WB = clone.R_WB @ exp_so3(dx[o:o + 3])
-            clone.p_WB = clone.p_WB + dx[o + 3:o + 6]
+            clone.R_WB = clone.R_WB @ exp_so3(dx[o : o + 3])
+            clone.p_WB = clone.p_WB + dx[o + 3 : o + 6]
 
 
 def marginal_covariance(state: State, blocks: list[Block] | tuple[Block, ...]) -> np.ndarray:
@@ -282,9 +285,7 @@ def ekf_update(state: State, H: np.ndarray, r: np.ndarray, R: np.ndarray | float
     return dx
 
 
-def augment_clone(
-    state: State, t_cam_s: float, omega_B_rad_s: np.ndarray | None = None
-) -> Block:
+def augment_clone(state: State, t_cam_s: float, omega_B_rad_s: np.ndarray | None = None) -> Block:
     """Clone the current IMU pose as a new block keyed by camera time ``t_cam_s``.
 
     The clone error equals the IMU pose error; with an online time offset, the clone is the pose at the true
@@ -303,8 +304,8 @@ def augment_clone(
         raise ValueError(f"augment_clone: clone time {t_cam_s} is not newer than the last clone")
     n = state.dim
     J = np.zeros((CLONE_DIM, n))
-    J[0:3, THETA:THETA + 3] = np.eye(3)
-    J[3:6, POS:POS + 3] = np.eye(3)
+    J[0:3, THETA : THETA + 3] = np.eye(3)
+    J[3:6, POS : POS + 3] = np.eye(3)
     if TIME_OFFSET_BLOCK in state._blocks:
         if omega_B_rad_s is None:
             raise ValueError("augment_clone: omega_B_rad_s is required with an online time offset")
@@ -322,7 +323,10 @@ def augment_clone(
     block = Block(State.clone_name(t_cam_s), n, CLONE_DIM)
     state._blocks[block.name] = block
     state.clones[float(t_cam_s)] = ClonePose(
-        float(t_cam_s), state.imu.R_WB.copy(), state.imu.p_WB.copy(), state.imu.R_WB.copy(),
+        float(t_cam_s),
+        state.imu.R_WB.copy(),
+        state.imu.p_WB.copy(),
+        state.imu.R_WB.copy(),
         state.imu.p_WB.copy(),
     )
     return block
@@ -333,7 +337,7 @@ def marginalize(state: State, block: Block) -> None:
     if block.name == IMU_BLOCK:
         raise ValueError("marginalize: the IMU block cannot be marginalized")
     current = state.block(block.name)
-    keep = np.r_[0:current.offset, current.offset + current.size:state.dim]
+    keep = np.r_[0 : current.offset, current.offset + current.size : state.dim]
     state._cov = state._cov[np.ix_(keep, keep)]
     del state._blocks[current.name]
     offset = 0

@@ -153,6 +153,36 @@ class StateEstimate:
     omega_B_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     cov: np.ndarray = field(default_factory=lambda: np.zeros((15, 15)))
 
+    @property
+    def cov_orientation_rad2(self) -> np.ndarray:
+        """Covariance of the orientation error ``dtheta`` (rad^2, in B: ``R = R_hat Exp(dtheta)``), (3, 3)."""
+        return self.cov[0:3, 0:3]
+
+    @property
+    def cov_position_W_m2(self) -> np.ndarray:
+        """Covariance of ``p_WB`` (m^2, world frame W), shape (3, 3)."""
+        return self.cov[3:6, 3:6]
+
+    @property
+    def cov_velocity_W_m2_s2(self) -> np.ndarray:
+        """Covariance of ``v_WB`` (m^2/s^2, world frame W), shape (3, 3)."""
+        return self.cov[6:9, 6:9]
+
+    @property
+    def cov_gyro_bias_rad2_s2(self) -> np.ndarray:
+        """Covariance of the gyro bias (rad^2/s^2, body frame B), shape (3, 3)."""
+        return self.cov[9:12, 9:12]
+
+    @property
+    def cov_accel_bias_m2_s4(self) -> np.ndarray:
+        """Covariance of the accelerometer bias (m^2/s^4, body frame B), shape (3, 3)."""
+        return self.cov[12:15, 12:15]
+
+    @property
+    def position_sigma_W_m(self) -> np.ndarray:
+        """Standard deviations of ``p_WB`` along the W axes (m), shape (3,) (negative variances read 0)."""
+        return np.sqrt(np.maximum(np.diag(self.cov_position_W_m2), 0.0))
+
 
 @dataclass(frozen=True)
 class CalibrationDrift:
@@ -219,7 +249,9 @@ class Estimator(Protocol):
     """The interface every estimator (``msckf``, ``window``, ``imu-only``, ``ground-truth``) implements.
 
     Samples are fed in timestamp order on the IMU clock (camera frames carry camera-clock stamps; the
-    estimator applies its time offset).
+    estimator applies its time offset). Every method applies to every estimator; where one does not (truth
+    for a VIO estimator, an initial state for the pass-through) it is a documented no-op, so callers never
+    need ``getattr``.
     """
 
     name: str
@@ -235,3 +267,21 @@ class Estimator(Protocol):
 
     def health(self) -> HealthStatus:
         """Health of the latest frame."""
+
+    def initialize(self, init: object) -> None:
+        """Start from an external initial state instead of the estimator's own initializer.
+
+        Args:
+            init: An ``InitResult``-like record (``t_s``, ``R_WB`` (3, 3), ``p_WB`` (3,) m, ``v_WB`` (3,)
+                m/s in W, ``gyro_bias_rad_s`` (3,), ``accel_bias_m_s2`` (3,), ``cov_diag`` (15,) in the
+                :class:`StateEstimate` error order). Estimators that take no initial state ignore it.
+        """
+
+    def feed_truth(self, truth: StateEstimate) -> None:
+        """Consume the true state at the latest frame (``ground-truth`` reports it; the others ignore it)."""
+
+    def wants_excitation(self) -> bool:
+        """True while the estimator asks for an excitation manoeuvre (a poorly known accelerometer bias)."""
+
+    def last_tracks_px(self) -> np.ndarray:
+        """Distorted pixels of the features tracked in the latest frame, shape (M, 2) (M may be 0)."""

@@ -87,15 +87,11 @@ def feature_jacobian(
     dz_dpb = dz_dpc @ R_CB
     H_f = dz_dpb @ R_BW
     H_pose = np.concatenate([dz_dpb @ skew_batch(p_B), -H_f], axis=-1)
-    H_ext = np.concatenate(
-        [dz_dpc @ skew_batch(p_C), -np.broadcast_to(dz_dpb, dz_dpc.shape)], axis=-1
-    )
+    H_ext = np.concatenate([dz_dpc @ skew_batch(p_C), -np.broadcast_to(dz_dpb, dz_dpc.shape)], axis=-1)
     return FeatureJacobian(z, Z, H_pose, H_ext, H_f)
 
 
-def nullspace_project(
-    H_x: np.ndarray, H_f: np.ndarray, r: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def nullspace_project(H_x: np.ndarray, H_f: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Project out the feature: left-multiply by the left null space of ``H_f`` (batched).
 
     With the complete QR ``H_f = [Q1 Q2] [R1; 0]`` (Householder, Golub and Van Loan, "Matrix Computations",
@@ -182,9 +178,9 @@ def clone_unobservable_basis(R_WB: np.ndarray, p_WB: np.ndarray, offsets: np.nda
     e_z = np.array([0.0, 0.0, 1.0])
     U = np.zeros((dim, 4))
     for k, o in enumerate(np.asarray(offsets, dtype=int)):
-        U[o + 3:o + 6, 0:3] = np.eye(3)
-        U[o:o + 3, 3] = R_WB[k].T @ e_z
-        U[o + 3:o + 6, 3] = np.cross(e_z, p_WB[k])
+        U[o + 3 : o + 6, 0:3] = np.eye(3)
+        U[o : o + 3, 3] = R_WB[k].T @ e_z
+        U[o + 3 : o + 6, 3] = np.cross(e_z, p_WB[k])
     return U
 
 

@@ -170,7 +170,7 @@ def evaluate_dataset(
         mask = (gt.t_s >= est_traj.t_s[0]) & (gt.t_s <= est_traj.t_s[-1])
         gt_span = TrajectoryArrays(gt.t_s[mask], gt.p_WB[mask], gt.quat_wxyz_WB[mask])
         write_tum(out_dir / "groundtruth_tum.txt", gt_span)
-        pos_covs = np.array([e.cov[3:6, 3:6] for e in estimates])
+        pos_covs = np.array([e.cov_position_W_m2 for e in estimates])
         result.update(evaluate_trajectory(est_traj, gt, pos_covs=pos_covs))
     result["frames"] = len(ms)
     return result

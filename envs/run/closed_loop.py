@@ -232,7 +232,7 @@ class ClosedLoopSim:
 
     def _feed_truth(self) -> None:
         tr = self.truth()
-        self.estimator.feed_truth(  # type: ignore[attr-defined]
+        self.estimator.feed_truth(
             StateEstimate(t_s=tr.t_s, R_WB=tr.R_WB, p_WB=tr.p_WB, v_WB=tr.v_WB, omega_B_rad_s=tr.omega_B)
         )
 

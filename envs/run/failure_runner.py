@@ -69,9 +69,8 @@ def run_stream(
         out.t_s, out.err_m = t, err
         m.update(init_time_s=float(t[0]), ate_m=float(np.sqrt(np.mean(err**2))), final_err_m=float(err[-1]),
                  scale_error_pct=float(scale_error_pct(p_est, p_gt)))
-        st = getattr(est, "state", None)
-        if st is not None and prm.estimate_time_offset:
-            m["time_offset_est_s"] = float(st.time_offset_s)
+        if isinstance(est, MsckfEstimator) and est.state is not None and prm.estimate_time_offset:
+            m["time_offset_est_s"] = float(est.state.time_offset_s)
     out.metrics = m
     return out
 
@@ -126,7 +125,7 @@ def along_track_velocity_stats(
         d = v / speed
         unit = speed if relative else 1.0
         err.append((float(d @ est.v_WB) - speed) / unit)
-        sig.append(float(np.sqrt(max(d @ est.cov[6:9, 6:9] @ d, 0.0))) / unit)
+        sig.append(float(np.sqrt(max(d @ est.cov_velocity_W_m2_s2 @ d, 0.0))) / unit)
     if not err:
         raise ValueError(f"along_track_velocity_stats: no moving estimate in [{t_from_s}, {t_to_s}) s")
     return float(np.sqrt(np.mean(np.square(err)))), float(np.mean(sig))

@@ -211,7 +211,7 @@ def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, 
     else:
         R_g, t_g = gauge
         log.p_est_W.append(R_g @ est.p_WB + t_g)
-        cov_p = R_g @ est.cov[3:6, 3:6] @ R_g.T
+        cov_p = R_g @ est.cov_position_W_m2 @ R_g.T
         log.p_sigma_W.append(np.sqrt(np.clip(np.diag(cov_p), 0.0, None)))
         log.yaw_est.append(yaw_from_rotmat(R_g @ est.R_WB))
     if setpoint is None or gauge is None:

@@ -101,7 +101,7 @@ def _stream_case(
         p_gt = np.stack([np.interp(t, stream.truth.t_s, stream.truth.p_WB[:, j]) for j in range(3)], axis=1)
         al = align_umeyama(p_est, p_gt, "posyaw")
         for e, d in zip(ests, al.apply(p_est) - p_gt, strict=True):
-            P = al.R @ e.cov[3:6, 3:6] @ al.R.T
+            P = al.R @ e.cov_position_W_m2 @ al.R.T
             nees.append(float(d @ np.linalg.solve(P, d)))
     return {
         "ate_m": m["ate_m"],

@@ -134,9 +134,8 @@ class RerunRecorder:
             self._frames += 1
             if self._frames % self._image_every == 0 and frame.image is not None:
                 rec.log("camera/image", rr.Image(frame.image))
-                tracks = getattr(loop.estimator, "last_tracks_px", None)
-                uv = tracks() if callable(tracks) else None
-                if uv is not None and len(uv):
+                uv = loop.estimator.last_tracks_px()
+                if len(uv):
                     rec.log("camera/image/features", rr.Points2D(uv, radii=1.5, colors=[[0, 255, 0]]))
 
     def close(self) -> None:

@@ -1,0 +1,265 @@
+"""Solver of the sliding-window optimizer: linearization, Schur elimination of landmarks, Levenberg-Marquardt.
+
+The window's cost is the whitened sum of IMU factors, the linear prior left by marginalization (OKVIS eq. 9),
+zero-velocity and no-motion factors on still keyframes, and Huber-robust reprojection factors
+(:mod:`viotb.vio.window_factors`). :func:`linearize` builds its Gauss-Newton system with the landmarks kept
+apart (sparse bundle-adjustment structure); :func:`schur_reduce` eliminates them from the damped system;
+:func:`levenberg_marquardt` iterates on the manifold; :func:`newest_keyframe_covariance` inverts the
+marginal information of the newest keyframe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from viotb.vio.marginalization import LinearPrior
+from viotb.vio.preintegration import ImuPreintegration
+from viotb.vio.state import ImuValues
+from viotb.vio.types import ImuNoise
+from viotb.vio.window_factors import NX, boxminus, imu_factor, reprojection, retract
+
+
+@dataclass(frozen=True)
+class FactorWeights:
+    """What the factors need besides the variables (noise models and the camera extrinsics).
+
+    Attributes:
+        noise: IMU noise densities.
+        R_BC: Camera-to-body rotation, shape (3, 3).
+        p_BC: Camera origin in B (m), shape (3,).
+        sigma_norm: Feature measurement sigma in normalized image coordinates (pixel sigma / focal length).
+        huber_threshold: Huber threshold on the whitened reprojection error norm (sigmas).
+        zero_velocity_sigma_m_s: Sigma (m/s) of the zero-velocity factor (and, times ``dt``, of the
+            no-motion factor).
+    """
+
+    noise: ImuNoise
+    R_BC: np.ndarray
+    p_BC: np.ndarray
+    sigma_norm: float
+    huber_threshold: float
+    zero_velocity_sigma_m_s: float
+
+
+@dataclass(frozen=True)
+class Factors:
+    """The factors of one linearization, by window index ``k`` of the keyframes they touch.
+
+    Attributes:
+        imu: ``(k, preintegration)`` of each IMU factor between keyframes ``k`` and ``k + 1``.
+        prior: The linear prior, or None.
+        prior_k: Window index of each of the prior's keyframes (``prior.keys`` order).
+        still: Keyframes with a zero-velocity factor.
+        no_motion: ``(k, dt_s)`` of each no-motion factor between keyframes ``k - 1`` and ``k``.
+        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of the reprojection factors.
+    """
+
+    imu: list[tuple[int, ImuPreintegration]]
+    prior: LinearPrior | None
+    prior_k: list[int]
+    still: list[int]
+    no_motion: list[tuple[int, float]]
+    obs: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclass
+class LinearSystem:
+    """Linearized window, landmarks not eliminated yet (``E[l] = H_{pose, l}`` over the 6N pose dims).
+
+    Attributes:
+        H: Information over the keyframe error states, shape (N NX, N NX).
+        g: Gradient, shape (N NX,).
+        H_ll: Landmark information blocks, shape (L, 3, 3).
+        g_l: Landmark gradients, shape (L, 3).
+        E: Pose-landmark blocks, shape (L, 6 N, 3).
+        cost: Robust cost, prior included.
+        n_res: Measurement residuals (prior excluded).
+        max_err: Largest whitened reprojection error per landmark (sigmas), shape (L,).
+        meas_cost: Cost without the prior.
+    """
+
+    H: np.ndarray
+    g: np.ndarray
+    H_ll: np.ndarray
+    g_l: np.ndarray
+    E: np.ndarray
+    cost: float
+    n_res: int
+    max_err: np.ndarray
+    meas_cost: float
+
+
+def pose_index(n_kf: int) -> np.ndarray:
+    """Indices of the ``[dtheta, dp]`` entries of ``n_kf`` keyframes in the stacked error state, (6 n_kf,)."""
+    return (np.arange(n_kf)[:, None] * NX + np.arange(6)[None, :]).ravel()
+
+
+def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeights) -> LinearSystem:
+    """Whitened Gauss-Newton system at ``(xs, pts)`` (IRLS Huber weights) and its robust cost.
+
+    Args:
+        xs: Keyframe values (N).
+        pts: Landmarks in W (m), shape (L, 3).
+        f: The factors.
+        w8: Their noise models and the extrinsics.
+    """
+    N, L = len(xs), len(pts)
+    D = N * NX
+    H = np.zeros((D, D))
+    g = np.zeros(D)
+    cost = 0.0
+    prior_cost = 0.0
+    n_res = 0
+    # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
+    for k, pre in f.imu:
+        r, J_i, J_j, C = imu_factor(pre, xs[k], xs[k + 1], w8.noise)
+        W = np.linalg.cholesky(np.linalg.inv(C)).T
+        r_w = W @ r
+        J = np.hstack([W @ J_i, W @ J_j])
+        sl = slice(k * NX, (k + 2) * NX)
+        H[sl, sl] += J.T @ J
+        g[sl] += J.T @ r_w
+        cost += 0.5 * float(r_w @ r_w)
+        n_res += NX
+    # b. Linear prior (OKVIS eq. 9): 0.5 dx^T H dx + g^T dx at dx = x [-] x0.
+    pr = f.prior
+    if pr is not None:
+        idx = np.concatenate([np.arange(NX) + NX * k for k in f.prior_k])
+        dx = np.concatenate([boxminus(xs[k], x0) for k, x0 in zip(f.prior_k, pr.x0, strict=True)])
+        H[np.ix_(idx, idx)] += pr.H
+        g[idx] += pr.H @ dx + pr.g
+        prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
+        cost += prior_cost
+    # b2. Zero-velocity factors ``v / sigma`` on still keyframes.
+    for k in f.still:
+        w_v = 1.0 / w8.zero_velocity_sigma_m_s
+        sl = slice(k * NX + 6, k * NX + 9)
+        r_v = w_v * xs[k].v_WB
+        H[sl, sl] += w_v * w_v * np.eye(3)
+        g[sl] += w_v * r_v
+        cost += 0.5 * float(r_v @ r_v)
+        n_res += 3
+    # b3. No-motion factors ``(p_k - p_{k-1}) / (sigma dt)`` between consecutive still keyframes.
+    for k, dt in f.no_motion:
+        w_p = 1.0 / (w8.zero_velocity_sigma_m_s * dt)
+        r_p = w_p * (xs[k].p_WB - xs[k - 1].p_WB)
+        J = np.zeros((3, 2 * NX))
+        J[:, 3:6], J[:, NX + 3 : NX + 6] = -w_p * np.eye(3), w_p * np.eye(3)
+        sl = slice((k - 1) * NX, (k + 1) * NX)
+        H[sl, sl] += J.T @ J
+        g[sl] += J.T @ r_p
+        cost += 0.5 * float(r_p @ r_p)
+        n_res += 3
+    # c. Reprojection factors, Huber-weighted (IRLS), landmarks kept apart for the Schur complement.
+    H_ll = np.zeros((L, 3, 3))
+    g_l = np.zeros((L, 3))
+    E = np.zeros((L, N, 6, 3))
+    max_err = np.zeros(L)
+    kf_i, lm_i, xy = f.obs
+    if len(kf_i):
+        R = np.stack([x.R_WB for x in xs])[kf_i]
+        P = np.stack([x.p_WB for x in xs])[kf_i]
+        z, _, J_pose, J_pt = reprojection(R, P, pts[lm_i], w8.R_BC, w8.p_BC)
+        s = 1.0 / w8.sigma_norm
+        r = (z - xy) * s
+        J_pose, J_pt = J_pose * s, J_pt * s
+        e = np.linalg.norm(r, axis=1)
+        k_h = w8.huber_threshold
+        w = np.where(e <= k_h, 1.0, k_h / np.maximum(e, 1e-12))
+        cost += float(0.5 * np.sum(np.where(e <= k_h, e * e, 2.0 * k_h * e - k_h * k_h)))
+        n_res += 2 * len(kf_i)
+        np.maximum.at(max_err, lm_i, e)
+        Jw = J_pose * w[:, None, None]
+        JwT = np.swapaxes(Jw, 1, 2)
+        Hpp = JwT @ J_pose
+        gp = (JwT @ r[:, :, None])[:, :, 0]
+        Hpp_k = np.zeros((N, 6, 6))
+        gp_k = np.zeros((N, 6))
+        np.add.at(Hpp_k, kf_i, Hpp)
+        np.add.at(gp_k, kf_i, gp)
+        pidx = pose_index(N).reshape(N, 6)
+        for k in range(N):
+            H[np.ix_(pidx[k], pidx[k])] += Hpp_k[k]
+            g[pidx[k]] += gp_k[k]
+        JptT = np.swapaxes(J_pt * w[:, None, None], 1, 2)
+        np.add.at(H_ll, lm_i, JptT @ J_pt)
+        np.add.at(g_l, lm_i, (JptT @ r[:, :, None])[:, :, 0])
+        np.add.at(E, (lm_i, kf_i), JwT @ J_pt)
+    return LinearSystem(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err, cost - prior_cost)
+
+
+def schur_reduce(sys: LinearSystem, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eliminate the landmarks (Schur complement) from the system damped by ``lam`` (relative to diagonal).
+
+    Returns:
+        ``(S (N NX, N NX), g_red (N NX,), H_ll^-1 (L, 3, 3))``.
+    """
+    N6 = sys.E.shape[1]
+    H = sys.H + lam * np.diag(np.diag(sys.H))
+    H_ll = sys.H_ll + lam * np.einsum("lii->li", sys.H_ll)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3)
+    H_ll_inv = np.linalg.inv(H_ll)
+    EH = sys.E @ H_ll_inv
+    L = len(H_ll_inv)
+    EH_flat = np.swapaxes(EH, 0, 1).reshape(N6, 3 * L)
+    pidx = pose_index(N6 // 6)
+    S = H.copy()
+    S[np.ix_(pidx, pidx)] -= EH_flat @ np.swapaxes(sys.E, 0, 1).reshape(N6, 3 * L).T
+    g = sys.g.copy()
+    g[pidx] -= EH_flat @ sys.g_l.ravel()
+    return S, g, H_ll_inv
+
+
+def levenberg_marquardt(
+    xs: list[ImuValues],
+    pts: np.ndarray,
+    f: Factors,
+    w8: FactorWeights,
+    max_iterations: int,
+    initial_damping: float,
+) -> tuple[list[ImuValues], np.ndarray, LinearSystem]:
+    """Levenberg-Marquardt on the manifold, landmarks eliminated by the Schur complement in each solve.
+
+    A step is kept when it does not raise the cost (damping / 10, at least 1e-8), else the damping grows
+    10x; iterations stop early when a kept step lowers the cost by less than 1e-6 of it.
+
+    Args:
+        xs: Initial keyframe values (N).
+        pts: Initial landmarks in W (m), shape (L, 3).
+        f: The factors.
+        w8: Their noise models and the extrinsics.
+        max_iterations: Most iterations.
+        initial_damping: Initial damping, relative to the diagonal.
+
+    Returns:
+        ``(xs, pts, system)``: the optimized values and the system linearized there.
+    """
+    sys = linearize(xs, pts, f, w8)
+    lam = initial_damping
+    pidx = pose_index(len(xs))
+    for _ in range(max_iterations):
+        S, g_red, H_ll_inv = schur_reduce(sys, lam)
+        dx = np.linalg.solve(S, -g_red)
+        rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
+        dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
+        xs_new = [retract(x, dx[k * NX : (k + 1) * NX]) for k, x in enumerate(xs)]
+        pts_new = pts + dl
+        sys_new = linearize(xs_new, pts_new, f, w8)
+        if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
+            small = sys.cost - sys_new.cost < 1e-6 * sys.cost
+            xs, pts, sys = xs_new, pts_new, sys_new
+            lam = max(lam / 10.0, 1e-8)
+            if small:
+                break
+        else:
+            lam *= 10.0
+    return xs, pts, sys
+
+
+def newest_keyframe_covariance(sys: LinearSystem) -> np.ndarray:
+    """Covariance of the newest keyframe: the inverse of its marginal information, shape (NX, NX)."""
+    S, _, _ = schur_reduce(sys, 0.0)
+    n = S.shape[0]
+    e_last = np.zeros((n, NX))
+    e_last[n - NX :] = np.eye(NX)
+    return np.linalg.solve(S, e_last)[n - NX :]
