@@ -54,6 +54,13 @@ QUAD_MASS_KG = 1.2
 HEAD_BODY = "head"
 HOME_KEYFRAME = "home"
 """Headset keyframe: standing at the origin, eyes 1.6 m above the floor, looking along +x_W."""
+HEADSET_CAMERAS = ("head_cam0", "head_cam1")
+"""Headset stereo tracking cameras (left, right), global shutter, looking along +x_B (``onboard`` stays the
+single centre camera)."""
+HEADSET_STEREO_BASELINE_M = 0.10
+"""Distance between the two headset tracking cameras (m), along y_B."""
+HEADSET_CAMERA_FOVY_DEG = 100.0
+"""Vertical field of view of the (pinhole-rendered) headset tracking cameras (deg)."""
 
 VEHICLE_BODIES = {"quadrotor": QUAD_BODY, "headset": HEAD_BODY}
 """Vehicle name -> its root body."""
