@@ -31,7 +31,7 @@ class KeyframeParams:
     min_translation_m: float = 0.20
     min_rotation_deg: float = 10.0
     max_interval_s: float = 2.0
-    orb_n_features: int = 500
+    orb_n_features: int = 1000
     orb_fast_threshold: int = 20
     match_ratio: float = 0.8
     max_hamming: int = 64
