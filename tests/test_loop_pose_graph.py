@@ -1,4 +1,4 @@
-"""Tests of the 4-DOF pose graph: closed forms on tiny graphs and drift removal on a synthetic two-lap loop."""
+"""Tests of the 4-DOF pose graph: closed forms on tiny graphs, drift removal on a synthetic two-lap loop."""
 
 from __future__ import annotations
 

@@ -3,7 +3,8 @@
 Brute-force Hamming matching of one keyframe's 500 ORB descriptors against a database of 100 keyframes takes
 ~300 ms here; quantizing them to 512 words takes ~2 ms and scoring a keyframe against the whole database is a
 dense (K, W) operation. Words are k-majority centres (Grana et al., "A fast approach for integrating ORB
-descriptors in the bag of words model", 2013): assign each descriptor to its nearest centre in Hamming distance,
+descriptors in the bag of words model", 2013): assign each descriptor to its nearest centre in Hamming
+distance,
 then set each centre bit to the majority of its members' bits. Vectors are tf-idf weighted and scored with
 DBoW2's L1 score ``s(a, b) = 1 - 0.5 |a/|a|_1 - b/|b|_1|_1`` in [0, 1] (Galvez-Lopez and Tardos, 2012).
 """

@@ -1,13 +1,16 @@
 """Rigid transforms and the 4-DOF (x, y, z, yaw) quantities of the pose graph.
 
-A ``RigidTransform`` ``T_AB`` maps B coordinates to A: ``x_A = R_AB @ x_B + p_AB``. Roll and pitch are observable
+A ``RigidTransform`` ``T_AB`` maps B coordinates to A: ``x_A = R_AB @ x_B + p_AB``. Roll and pitch are
+observable
 from gravity in VIO, so drift lives in yaw and translation only (VINS-Mono, Qin et al. 2018, Sec. VIII); the
 4-DOF relative measurement between keyframes i and j, both gravity-aligned, is
 
     dyaw_ij = yaw_j - yaw_i,        dp_ij = Rz(yaw_i)^T (p_WBj - p_WBi),
 
 i.e. the pose of j in the *yaw frame* of i (i's heading, world z up), which is unchanged by a 4-DOF drift
-``(Rz(psi), t)`` applied to both poses.
+``(Rz(psi), t)`` applied to both poses. The heading is that of a body-fixed axis ``axis_B`` that stays
+roughly horizontal: ``yaw = atan2((R a)_y, (R a)_x)``; any such axis shifts by exactly ``psi`` under a drift
+``Rz(psi)``. Body x is not always it: the EuRoC IMU's x axis points up, where its heading is undefined.
 """
 
 from __future__ import annotations
@@ -17,6 +20,19 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 from viotb.vio.lie import rotz, yaw_from_rotmat
+
+X_AXIS = np.array([1.0, 0.0, 0.0])
+
+
+def heading_rad(R_WB: np.ndarray, axis_B: np.ndarray = X_AXIS) -> float:
+    """Heading (rad) of the body axis ``axis_B`` (shape (3,)) in the world xy plane."""
+    a_W = R_WB @ axis_B
+    return float(np.arctan2(a_W[1], a_W[0]))
+
+
+def horizontal_axis_B(R_WB: np.ndarray) -> np.ndarray:
+    """The body-frame direction that points along world x at attitude ``R_WB``, shape (3,)."""
+    return R_WB.T @ X_AXIS
 
 
 def wrap_angle(angle_rad: float) -> float:
@@ -55,7 +71,10 @@ class RigidTransform:
         return RigidTransform(self.R @ other.R, self.R @ other.p + self.p)
 
     def apply_pose(self, R_XB: np.ndarray, p_XB: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pose of B expressed in A given its pose in X = this transform's source frame: ``(R @ R_XB, R @ p + p)``."""
+        """Pose of B expressed in A given its pose in X = this transform's source frame: ``(R @ R_XB,.
+
+        R @ p + p)``.
+        """
         return self.R @ R_XB, self.R @ p_XB + self.p
 
     def quat_xyzw(self) -> np.ndarray:
@@ -75,19 +94,21 @@ def interpolate(T0: RigidTransform, T1: RigidTransform, alpha: float) -> RigidTr
 
 
 def relative_4dof(
-    R_WBi: np.ndarray, p_WBi: np.ndarray, R_WBj: np.ndarray, p_WBj: np.ndarray
+    R_WBi: np.ndarray, p_WBi: np.ndarray, R_WBj: np.ndarray, p_WBj: np.ndarray, axis_B: np.ndarray = X_AXIS
 ) -> tuple[float, np.ndarray]:
     """4-DOF pose of j in the yaw frame of i from two poses in one world frame.
 
     Returns:
         ``(dyaw_rad, dp_m)``: ``yaw_j - yaw_i`` wrapped, and ``Rz(yaw_i)^T (p_j - p_i)``, shape (3,).
     """
-    yaw_i = yaw_from_rotmat(R_WBi)
-    dyaw = wrap_angle(yaw_from_rotmat(R_WBj) - yaw_i)
+    yaw_i = heading_rad(R_WBi, axis_B)
+    dyaw = wrap_angle(heading_rad(R_WBj, axis_B) - yaw_i)
     return dyaw, rotz(yaw_i).T @ (np.asarray(p_WBj) - np.asarray(p_WBi))
 
 
-def loop_4dof(R_WBi: np.ndarray, T_ij: RigidTransform) -> tuple[float, np.ndarray]:
+def loop_4dof(
+    R_WBi: np.ndarray, T_ij: RigidTransform, axis_B: np.ndarray = X_AXIS
+) -> tuple[float, np.ndarray]:
     """4-DOF measurement from a 6-DOF relative pose ``T_ij`` (j's body in i's body) and i's attitude.
 
     Only i's roll and pitch matter (its yaw cancels), so ``R_WBi`` may be in any yaw-drifted frame.
@@ -96,7 +117,7 @@ def loop_4dof(R_WBi: np.ndarray, T_ij: RigidTransform) -> tuple[float, np.ndarra
         ``(dyaw_rad, dp_m)`` as :func:`relative_4dof`.
     """
     R_WBj = R_WBi @ T_ij.R
-    return relative_4dof(R_WBi, np.zeros(3), R_WBj, R_WBi @ T_ij.p)
+    return relative_4dof(R_WBi, np.zeros(3), R_WBj, R_WBi @ T_ij.p, axis_B)
 
 
 def tilt_error_rad(R_WB_a: np.ndarray, R_WB_b: np.ndarray) -> float:
@@ -109,7 +130,13 @@ def tilt_error_rad(R_WB_a: np.ndarray, R_WB_b: np.ndarray) -> float:
     return float(np.arccos(np.clip(z_a @ z_b, -1.0, 1.0)))
 
 
-def drift_4dof(R_WB_map: np.ndarray, p_WB_map: np.ndarray, R_WB_odom: np.ndarray, p_WB_odom: np.ndarray):
+def drift_4dof(
+    R_WB_map: np.ndarray,
+    p_WB_map: np.ndarray,
+    R_WB_odom: np.ndarray,
+    p_WB_odom: np.ndarray,
+    axis_B: np.ndarray = X_AXIS,
+) -> RigidTransform:
     """The 4-DOF transform ``T_map_odom`` that carries an odometry pose onto its map pose.
 
     ``yaw = yaw(R_map) - yaw(R_odom)``, ``p = p_map - Rz(yaw) p_odom`` (VINS-Mono's ``r_drift``, ``t_drift``).
@@ -117,5 +144,5 @@ def drift_4dof(R_WB_map: np.ndarray, p_WB_map: np.ndarray, R_WB_odom: np.ndarray
     Returns:
         RigidTransform: ``T_W_corrected_from_W_odom``.
     """
-    yaw = wrap_angle(yaw_from_rotmat(R_WB_map) - yaw_from_rotmat(R_WB_odom))
+    yaw = wrap_angle(heading_rad(R_WB_map, axis_B) - heading_rad(R_WB_odom, axis_B))
     return RigidTransform.from_yaw(yaw, np.asarray(p_WB_map) - rotz(yaw) @ np.asarray(p_WB_odom))

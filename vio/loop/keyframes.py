@@ -5,7 +5,8 @@ A frame becomes a keyframe when the estimated body moved ``min_translation_m``, 
 and binary descriptors, and a landmark per feature where one is known. Landmarks are triangulated (linear DLT,
 ``cv2.triangulatePoints``) from ORB matches with the previous keyframe of the same sequence, using the two
 *estimated* poses and the camera calibration, so PnP needs nothing from the estimator's internals. They are
-kept in the keyframe's body frame ``B`` (``landmarks_B``): a pose-graph correction that moves the keyframe moves
+kept in the keyframe's body frame ``B`` (``landmarks_B``): a pose-graph correction that moves the keyframe
+moves
 its landmarks with it, and PnP against them gives the query's pose in the match body frame directly.
 """
 
@@ -32,8 +33,10 @@ class Keyframe:
         p_WB_odom: Estimated position in the odometry frame (m), shape (3,).
         keypoints_uv_px: Distorted pixel coordinates of the features, shape (N, 2) float32.
         descriptors: ORB descriptors, shape (N, 32) uint8.
-        landmarks_B: Landmark of each feature in this keyframe's body frame (m), shape (N, 3); NaN rows where none.
-        R_WB_map: Attitude in the map frame (pose graph), shape (3, 3), or None while its sequence is not localized.
+        landmarks_B: Landmark of each feature in this keyframe's body frame (m), shape (N, 3); NaN rows
+            where none.
+        R_WB_map: Attitude in the map frame (pose graph), shape (3, 3), or None while its sequence is not
+            localized.
         p_WB_map: Position in the map frame (m), shape (3,), or None.
         tf: Bag-of-words term frequencies, shape (W,), or None before the vocabulary exists.
     """
@@ -69,7 +72,8 @@ def match_descriptors(
     """Lowe-ratio matches from ``desc_a`` (N, 32) to ``desc_b`` (M, 32).
 
     Returns:
-        ``(ia, ib)``: indices of matched rows, each shape (K,), one match per row of ``a`` at most and no row of
+        ``(ia, ib)``: indices of matched rows, each shape (K,), one match per row of ``a`` at most and no
+        row of
         ``b`` used twice (the better one is kept).
     """
     if len(desc_a) == 0 or len(desc_b) < 2:
@@ -88,7 +92,9 @@ def match_descriptors(
     return ia, ib
 
 
-def camera_pose(R_WB: np.ndarray, p_WB: np.ndarray, calib: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
+def camera_pose(
+    R_WB: np.ndarray, p_WB: np.ndarray, calib: CameraCalibration
+) -> tuple[np.ndarray, np.ndarray]:
     """``(R_WC, p_WC)`` of the camera from the body pose and the extrinsics ``R_BC``, ``p_BC``."""
     return R_WB @ calib.R_BC, R_WB @ calib.p_BC + p_WB
 
@@ -157,7 +163,9 @@ class KeyframeDatabase:
         desc = np.zeros((0, 32), dtype=np.uint8) if desc is None else desc
         landmarks_B = np.full((len(uv), 3), np.nan)
         if points_W is not None and points_uv_px is not None and len(points_W):
-            given = [cv2.KeyPoint(float(u), float(v), 31.0, -1, 0, 0, i) for i, (u, v) in enumerate(points_uv_px)]
+            given = [
+                cv2.KeyPoint(float(u), float(v), 31.0, -1, 0, 0, i) for i, (u, v) in enumerate(points_uv_px)
+            ]
             kept, desc_given = self._orb.compute(image_u8, given)
             if desc_given is not None and len(kept):
                 ids = np.array([k.class_id for k in kept])

@@ -47,10 +47,12 @@ class PlaceRecognitionParams:
 
     Attributes:
         vocabulary_size: Words of the flat vocabulary (k-majority clustering of ORB descriptors).
-        vocabulary_train_keyframes: Keyframes collected before the vocabulary is trained from their descriptors,
+        vocabulary_train_keyframes: Keyframes collected before the vocabulary is trained from their
+            descriptors,
             when none was given or loaded with a map.
         vocabulary_iterations: k-majority iterations.
-        min_time_gap_s: A keyframe of the same odometry sequence must be this much older than the query to be a
+        min_time_gap_s: A keyframe of the same odometry sequence must be this much older than the query to
+            be a
             loop candidate (s); keyframes of other sequences and of a loaded map are all candidates.
         n_candidates: Best-scoring candidates passed to geometric verification, best first.
         min_score: Smallest bag-of-words score (L1 score of DBoW, 0..1) of a candidate.
@@ -71,7 +73,8 @@ class VerificationParams:
     """Geometric verification: PnP RANSAC of the query's 2-D features against the candidate's 3-D landmarks.
 
     Attributes:
-        min_inliers: Fewest PnP inliers accepted (VINS-Mono's ``MIN_LOOP_NUM`` = 25).
+        min_inliers: Fewest PnP inliers accepted (VINS-Mono: 25; at 25-30 a planar test took 0.4 m errors).
+        min_inlier_ratio: Fewest PnP inliers as a fraction of the descriptor matches to landmarks.
         ransac_threshold_px: RANSAC inlier threshold on the reprojection error (px).
         ransac_iterations: RANSAC iterations.
         ransac_confidence: RANSAC confidence.
@@ -82,7 +85,8 @@ class VerificationParams:
             odometry's, which gravity makes observable (deg).
     """
 
-    min_inliers: int = 25
+    min_inliers: int = 40
+    min_inlier_ratio: float = 0.25
     ransac_threshold_px: float = 3.0
     ransac_iterations: int = 200
     ransac_confidence: float = 0.999
@@ -103,7 +107,8 @@ class PoseGraphParams:
         loop_sigma_yaw_rad: Yaw sigma of a loop edge (rad).
         tilt_sigma_rad: Sigma of roll and pitch in every edge (rad); tiny, it freezes them (4-DOF emulation).
         anchor_sigma: Sigma of the prior holding fixed nodes (rad and m).
-        robust_kernel: ``"huber"`` (default, as VINS-Mono; convex, so a loop far off at the initial values still pulls), ``"cauchy"`` or ``"none"``, applied to loop edges only.
+        robust_kernel: ``"huber"`` (default, as VINS-Mono; convex, so a loop far off at the initial values
+            still pulls), ``"cauchy"`` or ``"none"``, applied to loop edges only.
         robust_k: Kernel width in whitened units (sigmas).
         max_iterations: Levenberg-Marquardt iterations (bounds the solve time).
     """

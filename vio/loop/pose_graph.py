@@ -1,14 +1,16 @@
 """4-DOF pose graph (x, y, z, yaw) of keyframes, solved with gtsam.
 
 Why 4-DOF: VIO observes roll and pitch from gravity, so its drift is a yaw rotation plus a translation
-(VINS-Mono's ``optimize4DoF``). VINS-Mono writes a 4-DOF residual in Ceres with yaw as the only rotation
-parameter. Here each node is a gtsam ``Pose3`` holding only the keyframe's *yaw frame* ``(Rz(yaw), p_WB)`` and
-each edge is a ``BetweenFactorPose3`` whose measurement is the 4-DOF relative pose ``(Rz(dyaw), dp)`` of
-:func:`viotb.vio.loop.frames.relative_4dof`, with sigmas ``(tilt, tilt, yaw, t, t, t)`` in gtsam's tangent order
-(rotation first). The tilt sigma is tiny, so roll and pitch of every node stay at zero (the anchors fix them)
-and the solve is the 4-DOF problem: since ``|Rz(yaw_i)^T dp| = |R_WBi^T dp|``, the isotropic translation cost
-equals VINS-Mono's residual in i's full body frame. Roll and pitch of a keyframe are re-attached from the
-odometry afterwards. Loop edges carry a robust kernel (Huber by default: a redescending Cauchy kernel, tested, lets a long drift, many sigmas at the initial values, switch the true loops off); odometry edges do not.
+(VINS-Mono's ``optimize4DoF``, which writes a 4-DOF residual in Ceres with yaw as the only rotation
+parameter). Here each node is a gtsam ``Pose3`` holding only the keyframe's *yaw frame* ``(Rz(yaw), p_WB)``
+and each edge is a ``BetweenFactorPose3`` whose measurement is the 4-DOF relative pose ``(Rz(dyaw), dp)`` of
+:func:`viotb.vio.loop.frames.relative_4dof`, with sigmas ``(tilt, tilt, yaw, t, t, t)`` in gtsam's tangent
+order (rotation first). The tilt sigma is tiny, so roll and pitch of every node stay at zero (the anchors
+fix them) and the solve is the 4-DOF problem; since ``|Rz(yaw_i)^T dp| = |R_WBi^T dp|``, the isotropic
+translation cost equals VINS-Mono's residual in i's full body frame. Roll and pitch of a keyframe are
+re-attached from the odometry afterwards. Loop edges carry a robust kernel (Huber by default; a
+redescending Cauchy kernel, tested, lets a long drift, many sigmas off at the initial values, switch the
+true loops off); odometry edges do not.
 """
 
 from __future__ import annotations
@@ -70,6 +72,7 @@ class PoseGraph4Dof:
     """
 
     def __init__(self, params: PoseGraphParams | None = None) -> None:
+        """Empty graph."""
         self.params = params or PoseGraphParams()
         self._yaw_rad: dict[int, float] = {}
         self._p_W: dict[int, np.ndarray] = {}

@@ -1,10 +1,12 @@
 """Geometric verification of a loop candidate: PnP RANSAC of the query's features on the match's landmarks.
 
-The query's ORB descriptors are matched (Lowe ratio) to those of the candidate's features that carry a landmark
+The query's ORB descriptors are matched (Lowe ratio) to those of the candidate's features that carry a
+landmark
 ``p_Bm`` (candidate body frame). PnP RANSAC (``cv2.solvePnPRansac``, AP3P minimal solver, on undistorted
 normalized coordinates) then Levenberg-Marquardt refinement on the inliers give ``T_Cq_Bm``; the relative pose
 of the query body in the match body is ``T_Bm_Bq = T_Cq_Bm^-1 T_BC^-1``. As in VINS-Mono's ``findConnection``
-the result must have enough inliers (25) and a plausible relative pose (yaw under 30 deg, bounded distance);
+the result must have enough inliers (25, and a quarter of the matches) and a plausible relative pose (yaw
+under 30 deg, bounded distance);
 here also a small RMS reprojection error and roll/pitch that agree with the odometry's, which gravity makes
 observable, so an image that looks alike but whose 3-D structure does not fit is refused.
 """
@@ -16,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.loop.frames import RigidTransform, loop_4dof, tilt_error_rad
+from viotb.vio.loop.frames import RigidTransform, horizontal_axis_B, loop_4dof, tilt_error_rad
 from viotb.vio.loop.keyframes import Keyframe, match_descriptors
 from viotb.vio.loop.params import KeyframeParams, VerificationParams
 
@@ -107,7 +109,7 @@ def verify_candidate(
     with np.errstate(divide="ignore", invalid="ignore"):
         err_px = f_px * np.linalg.norm(p_C[:, :2] / p_C[:, 2:3] - img, axis=1)
     inliers = np.flatnonzero((err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0))
-    if len(inliers) < params.min_inliers:
+    if len(inliers) < max(params.min_inliers, params.min_inlier_ratio * len(iq)):
         return Verdict(None, "few inliers")
     rms_px = float(np.sqrt(np.mean(err_px[inliers] ** 2)))
     if rms_px > params.max_rms_px:
@@ -115,7 +117,7 @@ def verify_candidate(
     T_Cq_Bm = RigidTransform(R_CB, tvec.ravel().copy())
     T_B_C = RigidTransform(calib.R_BC, np.asarray(calib.p_BC, dtype=float))
     T_mq = T_Cq_Bm.inverse() @ T_B_C.inverse()
-    dyaw, _ = loop_4dof(match.R_WB_odom, T_mq)
+    dyaw, _ = loop_4dof(match.R_WB_odom, T_mq, horizontal_axis_B(match.R_WB_odom))
     if abs(np.rad2deg(dyaw)) > params.max_relative_yaw_deg:
         return Verdict(None, "relative yaw")
     if np.linalg.norm(T_mq.p) > params.max_relative_translation_m:
