@@ -1,0 +1,144 @@
+"""End-to-end loop closure, relocalization and maps on images of real texture seen from a known trajectory.
+
+Scene: the undistorted EuRoC V1_01 frame 10 as a texture on the plane 3 m in front of a reference camera; the
+image of any camera pose is the plane-induced homography of that texture, exactly. The "estimator" is the true
+trajectory with an injected 4-DOF drift that grows with time (yaw 0.5 deg/s, 4.1 cm/s), so consecutive
+keyframes are nearly right and revisits are off by the accumulated drift, as with a real VIO.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from viotb.envs.euroc import load_image, read_euroc
+from viotb.vio.lie import log_so3, rotz
+from viotb.vio.loop import LoopCloser, LoopClosureParams, PlaceRecognitionParams, RigidTransform
+from viotb.vio.loop.map_io import MAP_KEYS, read_map_arrays
+
+MICRO = Path("/work/shared/data/euroc_v1_01_micro")
+pytestmark = pytest.mark.skipif(not MICRO.is_dir(), reason="EuRoC micro set not present")
+PERIOD_S, RATE_HZ, DEPTH_M = 8.0, 10.0, 3.0
+R_WC0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera looks along world +x
+T_WC0 = RigidTransform(R_WC0, np.array([0.0, 0.0, 1.0]))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    ds = read_euroc(MICRO)
+    K, dist = ds.calib.camera.K, np.array(ds.calib.camera.distortion)
+    texture = cv2.undistort(load_image(ds, 10), K, dist)
+    calib = replace(ds.calib, camera=replace(ds.calib.camera, distortion=(0.0, 0.0, 0.0, 0.0)))
+    return texture, calib
+
+
+def true_body(t_s: float, calib) -> RigidTransform:
+    phase = 2 * np.pi * t_s / PERIOD_S
+    p_WC = np.array([0.15 * (1 - np.cos(phase)), 0.6 * np.sin(phase), 1.0 + 0.1 * np.sin(2 * phase)])
+    T_WC = RigidTransform(rotz(np.deg2rad(8.0) * np.sin(phase)) @ R_WC0, p_WC)
+    return T_WC @ RigidTransform(calib.R_BC, calib.p_BC).inverse()
+
+
+def render(texture, calib, T_WB: RigidTransform) -> np.ndarray:
+    T_Cq_C0 = (T_WB @ RigidTransform(calib.R_BC, calib.p_BC)).inverse() @ T_WC0
+    n = np.array([0.0, 0.0, 1.0])
+    K = calib.camera.K
+    H = K @ (T_Cq_C0.R + np.outer(T_Cq_C0.p, n) / DEPTH_M) @ np.linalg.inv(K)
+    h, w = texture.shape
+    return cv2.warpPerspective(texture, H, (w, h))
+
+
+def drift(t_s: float, offset: RigidTransform) -> RigidTransform:
+    return offset @ RigidTransform.from_yaw(np.deg2rad(0.5) * t_s, np.array([0.03, -0.02, 0.02]) * t_s)
+
+
+def fly(closer: LoopCloser, scene, t0_s: float, t1_s: float, offset: RigidTransform) -> list[tuple]:
+    """Feed frames in [t0, t1); returns (t, truth, odometry, closure) per frame."""
+    texture, calib = scene
+    out = []
+    for t_s in np.arange(t0_s, t1_s, 1.0 / RATE_HZ):
+        truth = true_body(t_s, calib)
+        odom = drift(t_s, offset) @ truth
+        closure = closer.add_frame(t_s, render(texture, calib, truth), odom.R, odom.p, calib)
+        out.append((t_s, truth, odom, closure))
+    return out
+
+
+def _err(T_a: RigidTransform, T_b: RigidTransform) -> tuple[float, float]:
+    return float(np.linalg.norm(T_a.p - T_b.p)), float(np.rad2deg(np.linalg.norm(log_so3(T_a.R.T @ T_b.R))))
+
+
+PARAMS = LoopClosureParams(recognition=PlaceRecognitionParams(min_time_gap_s=3.0))
+
+
+@pytest.fixture(scope="module")
+def first_run(scene):
+    closer = LoopCloser(PARAMS)
+    frames = fly(closer, scene, 0.0, 2 * PERIOD_S, RigidTransform.identity())
+    return closer, frames
+
+
+def test_loops_are_found_and_their_relative_poses_are_right(first_run):
+    closer, frames = first_run
+    truth_at = {round(t, 6): tr for t, tr, _, _ in frames}
+    assert len(closer.closures) >= 10  # measured: 20 in 16 s
+    errors = []
+    for c in closer.closures:
+        T_mq_true = truth_at[round(c.t_match_s, 6)].inverse() @ truth_at[round(c.t_query_s, 6)]
+        T_mq = RigidTransform(Rotation.from_quat(c.quat_xyzw).as_matrix(), c.p_xyz)
+        errors.append(_err(T_mq, T_mq_true))
+    errors = np.array(errors)
+    # Measured: 18 of 19 within 12 cm / 2.3 deg (a single plane: lateral translation and rotation trade off);
+    # one accepted closure is 0.48 m off (KNOWN ISSUE: verification lets it through; Huber limits it).
+    good = (errors[:, 0] < 0.15) & (errors[:, 1] < 3.0)
+    assert good.mean() >= 0.85
+    assert np.median(errors[:, 0]) < 0.06
+
+
+def test_drift_is_corrected_after_the_loop(first_run):
+    closer, frames = first_run
+    t_s, truth, odom, _ = frames[-1]
+    R, p = closer.corrected_pose(t_s, odom.R, odom.p)
+    err_odom = _err(odom, truth)
+    err_corr = _err(RigidTransform(R, p), truth)
+    # Measured: odometry 0.67 m / 7.9 deg off at 16 s; corrected 0.16 m / 2.2 deg (the keyframe map poses at
+    # the closures are 3-12 cm / 0.3-1.8 deg off).
+    assert err_odom[0] > 0.5
+    assert err_corr[0] < 0.2 and err_corr[1] < 3.0, (err_odom, err_corr)
+    keyframe_ms = [ft.total_ms for ft in closer.timings if ft.keyframe]
+    other_ms = [ft.total_ms for ft in closer.timings if not ft.keyframe]
+    assert np.median(other_ms) < 1.0
+    assert np.median(keyframe_ms) < 150.0
+
+
+def test_map_round_trip_is_exact(first_run, tmp_path):
+    closer, _ = first_run
+    closer.save_map(tmp_path / "a.npz")
+    loaded = LoopCloser(PARAMS)
+    loaded.load_map(tmp_path / "a.npz")
+    loaded.save_map(tmp_path / "b.npz")
+    a, b = read_map_arrays(tmp_path / "a.npz"), read_map_arrays(tmp_path / "b.npz")
+    for key in MAP_KEYS:
+        assert a[key].dtype == b[key].dtype, key
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert len(a["kf_t_s"]) == len(closer.db)
+
+
+def test_new_run_with_a_loaded_map_localizes_into_the_map_frame(first_run, scene, tmp_path):
+    closer, _ = first_run
+    closer.save_map(tmp_path / "map.npz")
+    second = LoopCloser(PARAMS)
+    second.load_map(tmp_path / "map.npz")
+    assert not second.localized
+    offset = RigidTransform.from_yaw(np.deg2rad(40.0), np.array([2.0, -1.0, 0.5]))  # another odometry frame
+    frames = fly(second, scene, 20.0, 23.0, offset)
+    relocs = [f for f in frames if f[3] is not None and f[3].relocalization]
+    assert second.localized and relocs
+    t_s, truth, odom, _ = frames[-1]
+    R, p = second.corrected_pose(t_s + 2.0, odom.R, odom.p)  # after the blend
+    err_m, err_deg = _err(RigidTransform(R, p), truth)
+    assert err_m < 0.15 and err_deg < 3.0  # measured 0.15 m / 2.1 deg

@@ -1,0 +1,281 @@
+"""The loop-closure facade: one call per camera frame, decoupled from the estimator.
+
+Per frame: ``add_frame(t, image, R_WB, p_WB, calib)`` with the estimator's pose in its own odometry frame.
+Keyframes get ORB features and triangulated landmarks; each new keyframe queries the bag-of-words database
+(keyframes of its own sequence only when ``min_time_gap_s`` older; other localized sequences and a loaded map
+all), verifies the best candidates with PnP RANSAC, and on success adds a loop edge and solves the 4-DOF pose
+graph. The result is published as ``T_W_corrected_from_W_odom`` (blended in over ``blend_duration_s``), so the
+estimator's state is never touched: ``corrected_pose(t, R_WB, p_WB)`` maps any odometry pose to the map.
+
+Sequences and relocalization (VINS-Mono's ``sequence``): a tracking loss (``notify_tracking_lost()``, or a
+frame gap over ``tracking_loss_gap_s``) starts a new odometry sequence that is not localized: its keyframes
+stay out of the graph and the correction resets to identity until a keyframe is verified against a localized
+one; then ``T_map_odom`` of the sequence is the 4-DOF transform that puts the query where PnP says, the
+sequence joins the graph and the graph is solved. A run started with ``load_map`` is such a sequence: it
+localizes into the map's frame at its first recognized place, with the map's keyframes held fixed.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from viotb.vio.camera import CameraCalibration
+from viotb.vio.lie import rotz
+from viotb.vio.loop.bow import BowDatabase, train_vocabulary
+from viotb.vio.loop.correction import CorrectionBlender
+from viotb.vio.loop.frames import (
+    RigidTransform,
+    drift_4dof,
+    heading_rad,
+    horizontal_axis_B,
+    loop_4dof,
+    relative_4dof,
+)
+from viotb.vio.loop.keyframes import Keyframe, KeyframeDatabase
+from viotb.vio.loop.map_io import read_map_arrays, write_map_arrays
+from viotb.vio.loop.params import LoopClosureParams
+from viotb.vio.loop.pose_graph import Edge4Dof, PoseGraph4Dof
+from viotb.vio.loop.records import FrameTiming, LoopClosure
+from viotb.vio.loop.serialize import keyframes_from_arrays, map_arrays
+from viotb.vio.loop.verification import VerifiedPose, verify_candidate
+
+
+class LoopCloser:
+    """Keyframes, place recognition, verification, pose graph and drift correction behind one call per frame.
+
+    Args:
+        params: All parameters.
+        vocabulary: Bag-of-words vocabulary, shape (W, 32) uint8; None trains one from the first keyframes.
+    """
+
+    def __init__(self, params: LoopClosureParams | None = None, vocabulary: np.ndarray | None = None) -> None:
+        """A fresh closer: sequence 0 is the map frame, no keyframes."""
+        self.params = params or LoopClosureParams()
+        self.db = KeyframeDatabase(self.params.keyframes)
+        self.graph = PoseGraph4Dof(self.params.pose_graph)
+        self.blender = CorrectionBlender(self.params.blend_duration_s)
+        self.bow: BowDatabase | None = None if vocabulary is None else BowDatabase(vocabulary)
+        self.closures: list[LoopClosure] = []
+        self.timings: list[FrameTiming] = []
+        self.sequence = 0
+        self._localized: set[int] = {0}
+        self._map_edges: list[Edge4Dof] = []
+        self._last_t_s: float | None = None
+        self._lost = False
+        self.heading_axis_B: np.ndarray | None = None  # set at the first keyframe or by load_map
+
+    def _yaw(self, R_WB: np.ndarray) -> float:
+        return heading_rad(R_WB, self.heading_axis_B)
+
+    @property
+    def localized(self) -> bool:
+        """Whether the current odometry sequence is tied to the map frame."""
+        return self.sequence in self._localized
+
+    def notify_tracking_lost(self) -> None:
+        """The estimator lost track (and will restart in a new odometry frame): start a new sequence."""
+        self._lost = True
+
+    def correction(self, t_s: float) -> RigidTransform:
+        """``T_W_corrected_from_W_odom`` in force at ``t_s``, blended."""
+        return self.blender.value(t_s)
+
+    def corrected_pose(self, t_s: float, R_WB: np.ndarray, p_WB: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """An odometry pose ``(R_WB (3, 3), p_WB (3,) m)`` in the corrected (map) frame."""
+        return self.correction(t_s).apply_pose(np.asarray(R_WB), np.asarray(p_WB))
+
+    def add_frame(
+        self,
+        t_s: float,
+        image_u8: np.ndarray,
+        R_WB: np.ndarray,
+        p_WB: np.ndarray,
+        calib: CameraCalibration,
+        points_W: np.ndarray | None = None,
+        points_uv_px: np.ndarray | None = None,
+    ) -> LoopClosure | None:
+        """Process one camera frame with the estimator's pose.
+
+        Args:
+            t_s: Frame time (s).
+            image_u8: Grayscale image, shape (H, W) uint8 (distorted, as the camera gives it).
+            R_WB: Estimated attitude in the estimator's odometry frame, shape (3, 3).
+            p_WB: Estimated position (m), shape (3,).
+            calib: Camera calibration (intrinsics, distortion, ``R_BC``, ``p_BC``).
+            points_W: Optional landmarks from the estimator (odometry frame, m), shape (M, 3).
+            points_uv_px: Their pixels in this image, shape (M, 2).
+
+        Returns:
+            The loop closure accepted at this frame, or None.
+        """
+        t0 = time.perf_counter()
+        R_WB, p_WB = np.asarray(R_WB, dtype=float), np.asarray(p_WB, dtype=float)
+        gap = self._last_t_s is not None and t_s - self._last_t_s > self.params.tracking_loss_gap_s
+        if self._lost or gap:
+            self._start_sequence(t_s)
+        self._last_t_s = float(t_s)
+        if not self.db.is_keyframe(t_s, R_WB, p_WB, self.sequence):
+            self.timings.append(FrameTiming(t_s, (time.perf_counter() - t0) * 1e3))
+            return None
+        if self.heading_axis_B is None:
+            self.heading_axis_B = horizontal_axis_B(R_WB)
+        uv, desc, landmarks_B = self.db.extract(image_u8, R_WB, p_WB, points_W, points_uv_px)
+        kf = Keyframe(
+            len(self.db), float(t_s), self.sequence, R_WB.copy(), p_WB.copy(), uv, desc, landmarks_B
+        )
+        prev = self.db.last_of_sequence(self.sequence)
+        if prev is not None:
+            self.db.triangulate(prev, kf, calib)
+        t1 = time.perf_counter()
+        candidates = self._candidates(kf)
+        t2 = time.perf_counter()
+        verified, match = None, None
+        for cand in candidates:
+            verdict = verify_candidate(
+                uv, desc, R_WB, cand, calib, self.params.keyframes, self.params.verification
+            )
+            if verdict.pose is not None:
+                verified, match = verdict.pose, cand
+                break
+        t3 = time.perf_counter()
+        self._insert(kf, prev)
+        closure = None
+        if verified is not None and match is not None:
+            closure = self._close(kf, match, verified)
+        t4 = time.perf_counter()
+        self.timings.append(
+            FrameTiming(
+                t_s, (t4 - t0) * 1e3, True, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3, (t4 - t3) * 1e3
+            )
+        )
+        return closure
+
+    def _start_sequence(self, t_s: float) -> None:
+        self.sequence = max([kf.sequence for kf in self.db.keyframes] + [self.sequence]) + 1
+        self._lost = False
+        self.blender.set_target(t_s, RigidTransform.identity(), snap=True)
+
+    def _candidates(self, kf: Keyframe) -> list[Keyframe]:
+        rp = self.params.recognition
+        if self.bow is None:
+            if len(self.db) + 1 < rp.vocabulary_train_keyframes:
+                return []
+            descs = np.vstack([k.descriptors for k in self.db.keyframes] + [kf.descriptors])
+            vocab = train_vocabulary(descs, rp.vocabulary_size, rp.vocabulary_iterations, rp.seed)
+            self.bow = BowDatabase(vocab)
+            for old in self.db.keyframes:
+                old.tf = self.bow.transform(old.descriptors)
+                self.bow.add(old.tf)
+        kf.tf = self.bow.transform(kf.descriptors)
+        rows = np.array(
+            [
+                k.index
+                for k in self.db.keyframes
+                if k.sequence in self._localized
+                and (k.sequence != kf.sequence or kf.t_s - k.t_s >= rp.min_time_gap_s)
+            ],
+            dtype=np.int64,
+        )
+        if len(rows) == 0:
+            return []
+        scores = self.bow.scores(kf.tf, rows)
+        order = np.argsort(-scores)[: rp.n_candidates]
+        return [self.db.keyframes[rows[i]] for i in order if scores[i] >= rp.min_score]
+
+    def _insert(self, kf: Keyframe, prev: Keyframe | None) -> None:
+        self.db.add(kf)
+        if self.bow is not None and kf.tf is not None:
+            self.bow.add(kf.tf)
+        if kf.sequence not in self._localized:
+            return
+        kf.R_WB_map, kf.p_WB_map = self.blender.target.apply_pose(kf.R_WB_odom, kf.p_WB_odom)
+        self.graph.add_node(kf.index, self._yaw(kf.R_WB_map), kf.p_WB_map, fixed=len(self.graph) == 0)
+        if prev is not None:
+            self._odometry_edge(prev, kf)
+
+    def _odometry_edge(self, prev: Keyframe, kf: Keyframe) -> None:
+        meas = relative_4dof(prev.R_WB_odom, prev.p_WB_odom, kf.R_WB_odom, kf.p_WB_odom, self.heading_axis_B)
+        self.graph.add_edge(Edge4Dof(prev.index, kf.index, *meas))
+
+    def _close(self, kf: Keyframe, match: Keyframe, verified: VerifiedPose) -> LoopClosure:
+        T_mq = verified.T_match_query
+        relocalization = kf.sequence not in self._localized
+        if relocalization:  # align the whole sequence to the map where PnP puts the query
+            T_map_q = RigidTransform(match.R_WB_map, match.p_WB_map) @ T_mq
+            align = drift_4dof(T_map_q.R, T_map_q.p, kf.R_WB_odom, kf.p_WB_odom, self.heading_axis_B)
+            members = [k for k in self.db.keyframes if k.sequence == kf.sequence]
+            for i, k in enumerate(members):
+                k.R_WB_map, k.p_WB_map = align.apply_pose(k.R_WB_odom, k.p_WB_odom)
+                self.graph.add_node(k.index, self._yaw(k.R_WB_map), k.p_WB_map)
+                if i > 0:
+                    self._odometry_edge(members[i - 1], k)
+            self._localized.add(kf.sequence)
+        self.graph.add_edge(
+            Edge4Dof(
+                match.index, kf.index, *loop_4dof(match.R_WB_odom, T_mq, self.heading_axis_B), is_loop=True
+            )
+        )
+        self.graph.optimize()
+        for k in self.db.keyframes:
+            if k.index in self.graph:
+                yaw, p = self.graph.node(k.index)
+                k.R_WB_map = rotz(yaw - self._yaw(k.R_WB_odom)) @ k.R_WB_odom
+                k.p_WB_map = p
+        self.blender.set_target(
+            kf.t_s, drift_4dof(kf.R_WB_map, kf.p_WB_map, kf.R_WB_odom, kf.p_WB_odom, self.heading_axis_B)
+        )
+        closure = LoopClosure(
+            kf.t_s,
+            match.t_s,
+            T_mq.p.copy(),
+            T_mq.quat_xyzw(),
+            verified.inliers,
+            verified.rms_px,
+            relocalization,
+        )
+        self.closures.append(closure)
+        return closure
+
+    def save_map(self, path: Path | str) -> None:
+        """Write the localized keyframes, their edges, the vocabulary and the closures (see ``map_io``).
+
+        Raises:
+            ValueError: No vocabulary yet (fewer keyframes than ``vocabulary_train_keyframes``).
+        """
+        if self.bow is None:
+            raise ValueError("no vocabulary yet: too few keyframes to save a map")
+        kept = [k for k in self.db.keyframes if k.sequence in self._localized]
+        write_map_arrays(
+            path,
+            map_arrays(
+                kept,
+                self.bow.vocabulary,
+                self.heading_axis_B,
+                self._map_edges + self.graph.edges,
+                self.closures,
+            ),
+        )
+
+    def load_map(self, path: Path | str) -> None:
+        """Load a map into a fresh closer; the run localizes into the map frame at its first recognized place.
+
+        Raises:
+            ValueError: The closer already has keyframes.
+        """
+        if len(self.db):
+            raise ValueError("load_map needs a fresh LoopCloser (it already has keyframes)")
+        arrays = read_map_arrays(path)
+        keyframes, edges, closures = keyframes_from_arrays(arrays)
+        self.bow = BowDatabase(arrays["vocabulary"])
+        self.heading_axis_B = arrays["heading_axis_B"].copy()
+        for kf in keyframes:
+            kf.tf = self.bow.transform(kf.descriptors)
+            self.db.add(kf)
+            self.bow.add(kf.tf)
+            self.graph.add_node(kf.index, self._yaw(kf.R_WB_map), kf.p_WB_map, fixed=True)
+        self._map_edges = edges
+        self.closures = closures
+        self._localized = {kf.sequence for kf in keyframes}
+        self.sequence = max(self._localized, default=-1) + 1

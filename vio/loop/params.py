@@ -1,0 +1,145 @@
+"""Parameters of loop closure and relocalization, one frozen dataclass per component.
+
+Numbers borrowed from VINS-Mono's ``pose_graph`` where it has one (minimum 25 PnP inliers, relative yaw under
+30 degrees, Huber/Cauchy kernel on loop edges only, the previous keyframes excluded from the loop query); the
+rest are sized for 20 Hz cameras of 320x240 to 752x480 and indoor rooms.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class KeyframeParams:
+    """When a frame becomes a keyframe, and how its features and landmarks are made.
+
+    Attributes:
+        min_translation_m: Travelled distance since the last keyframe that makes a new one (m).
+        min_rotation_deg: Rotation since the last keyframe that makes a new one (deg).
+        max_interval_s: Time since the last keyframe that makes a new one even without motion (s).
+        orb_n_features: Features per keyframe (``cv2.ORB_create(nfeatures=...)``).
+        orb_fast_threshold: FAST threshold of ORB (grey levels).
+        match_ratio: Lowe ratio of the best to the second-best Hamming distance for a match.
+        max_hamming: Largest Hamming distance (bits of 256) accepted for a match.
+        min_parallax_deg: Smallest angle between the two rays of a triangulated landmark (deg).
+        max_reprojection_px: Largest reprojection error of a triangulated landmark in either keyframe (px).
+        min_depth_m: Smallest landmark depth in either camera (m).
+        max_depth_m: Largest landmark depth in either camera (m).
+    """
+
+    min_translation_m: float = 0.20
+    min_rotation_deg: float = 10.0
+    max_interval_s: float = 2.0
+    orb_n_features: int = 1000
+    orb_fast_threshold: int = 20
+    match_ratio: float = 0.8
+    max_hamming: int = 64
+    min_parallax_deg: float = 1.0
+    max_reprojection_px: float = 2.0
+    min_depth_m: float = 0.1
+    max_depth_m: float = 40.0
+
+
+@dataclass(frozen=True)
+class PlaceRecognitionParams:
+    """Bag-of-binary-words place recognition and candidate selection.
+
+    Attributes:
+        vocabulary_size: Words of the flat vocabulary (k-majority clustering of ORB descriptors).
+        vocabulary_train_keyframes: Keyframes collected before the vocabulary is trained from their
+            descriptors,
+            when none was given or loaded with a map.
+        vocabulary_iterations: k-majority iterations.
+        min_time_gap_s: A keyframe of the same odometry sequence must be this much older than the query to
+            be a
+            loop candidate (s); keyframes of other sequences and of a loaded map are all candidates.
+        n_candidates: Best-scoring candidates passed to geometric verification, best first.
+        min_score: Smallest bag-of-words score (L1 score of DBoW, 0..1) of a candidate.
+        seed: Seed of the vocabulary's initial centres.
+    """
+
+    vocabulary_size: int = 512
+    vocabulary_train_keyframes: int = 5
+    vocabulary_iterations: int = 8
+    min_time_gap_s: float = 5.0
+    n_candidates: int = 3
+    min_score: float = 0.02
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class VerificationParams:
+    """Geometric verification: PnP RANSAC of the query's 2-D features against the candidate's 3-D landmarks.
+
+    Attributes:
+        min_inliers: Fewest PnP inliers accepted (VINS-Mono: 25; at 25-30 a planar test took 0.4 m errors).
+        min_inlier_ratio: Fewest PnP inliers as a fraction of the descriptor matches to landmarks.
+        ransac_threshold_px: RANSAC inlier threshold on the reprojection error (px).
+        ransac_iterations: RANSAC iterations.
+        ransac_confidence: RANSAC confidence.
+        max_rms_px: Largest RMS reprojection error of the inliers after refinement (px).
+        max_relative_yaw_deg: Largest yaw between query and match bodies (deg), VINS-Mono's 30.
+        max_relative_translation_m: Largest distance between query and match bodies (m).
+        max_tilt_error_deg: Largest disagreement between the roll/pitch that PnP implies for the query and the
+            odometry's, which gravity makes observable (deg).
+    """
+
+    min_inliers: int = 40
+    min_inlier_ratio: float = 0.25
+    ransac_threshold_px: float = 3.0
+    ransac_iterations: int = 200
+    ransac_confidence: float = 0.999
+    max_rms_px: float = 2.0
+    max_relative_yaw_deg: float = 30.0
+    max_relative_translation_m: float = 5.0
+    max_tilt_error_deg: float = 5.0
+
+
+@dataclass(frozen=True)
+class PoseGraphParams:
+    """4-DOF pose graph (x, y, z, yaw) solved with gtsam.
+
+    Attributes:
+        odometry_sigma_translation_m: Translation sigma of one odometry edge (m).
+        odometry_sigma_yaw_rad: Yaw sigma of one odometry edge (rad).
+        loop_sigma_translation_m: Translation sigma of a loop edge (m).
+        loop_sigma_yaw_rad: Yaw sigma of a loop edge (rad).
+        tilt_sigma_rad: Sigma of roll and pitch in every edge (rad); tiny, it freezes them (4-DOF emulation).
+        anchor_sigma: Sigma of the prior holding fixed nodes (rad and m).
+        robust_kernel: ``"huber"`` (default, as VINS-Mono; convex, so a loop far off at the initial values
+            still pulls), ``"cauchy"`` or ``"none"``, applied to loop edges only.
+        robust_k: Kernel width in whitened units (sigmas).
+        max_iterations: Levenberg-Marquardt iterations (bounds the solve time).
+    """
+
+    odometry_sigma_translation_m: float = 0.02
+    odometry_sigma_yaw_rad: float = 0.005
+    loop_sigma_translation_m: float = 0.05
+    loop_sigma_yaw_rad: float = 0.02
+    tilt_sigma_rad: float = 1e-4
+    anchor_sigma: float = 1e-6
+    robust_kernel: str = "huber"
+    robust_k: float = 1.0
+    max_iterations: int = 20
+
+
+@dataclass(frozen=True)
+class LoopClosureParams:
+    """All loop-closure parameters.
+
+    Attributes:
+        keyframes: Keyframe selection, features and triangulation.
+        recognition: Place recognition.
+        verification: Geometric verification.
+        pose_graph: Pose graph.
+        blend_duration_s: Time over which a new drift correction is blended in (s).
+        tracking_loss_gap_s: A gap between frames longer than this starts a new odometry sequence (s).
+    """
+
+    keyframes: KeyframeParams = field(default_factory=KeyframeParams)
+    recognition: PlaceRecognitionParams = field(default_factory=PlaceRecognitionParams)
+    verification: VerificationParams = field(default_factory=VerificationParams)
+    pose_graph: PoseGraphParams = field(default_factory=PoseGraphParams)
+    blend_duration_s: float = 1.0
+    tracking_loss_gap_s: float = 1.0
