@@ -1,4 +1,4 @@
-"""controllers room: geometric SE(3) controller, motor mixer, setpoints (numpy; of vio only vio.lie and vio.types)."""
+"""controllers room: SE(3) controller, motor mixer, setpoints (numpy; of vio only vio.lie and vio.types)."""
 
 from viotb.controllers.mixer import Mixer
 from viotb.controllers.se3 import SE3Controller, SE3Gains

@@ -281,8 +281,9 @@ class StraightLine:
         t = min(max(float(t_s), 0.0), self.duration_s)
         w, dw, d2w, d3w = _phase_ramp_up_down(t, self.duration_s, self.ramp_s)
         u = self.direction_W * self.speed_m_s
-        return FlatOutput(p_W=self.start_W_m + u * w, v_W=u * dw, a_W=u * d2w, j_W=u * d3w,
-                          yaw_rad=self.yaw_rad)
+        return FlatOutput(
+            p_W=self.start_W_m + u * w, v_W=u * dw, a_W=u * d2w, j_W=u * d3w, yaw_rad=self.yaw_rad
+        )
 
 
 @dataclass(frozen=True)

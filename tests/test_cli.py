@@ -30,10 +30,20 @@ def test_scenarios_record_and_eval_keep_their_json_keys(runner, tmp_path):
     assert {"frames", "imu_samples", "path_length_m"} <= set(rec)
     assert (rec["frames"], rec["imu_samples"]) == (61, 601)
     ev_dir = tmp_path / "ev"
-    ev = _json(runner.invoke(app, ["eval", str(tmp_path), "--estimator", "msckf", "--out", str(ev_dir),
-                                   "--json"]))
-    keys = {"ate_posyaw_m", "ate_se3_m", "rpe_1m_pct", "drift_pct", "scale_error_pct", "nees_pos_mean",
-            "ms_per_frame_median", "frames", "path_length_m"}
+    ev = _json(
+        runner.invoke(app, ["eval", str(tmp_path), "--estimator", "msckf", "--out", str(ev_dir), "--json"])
+    )
+    keys = {
+        "ate_posyaw_m",
+        "ate_se3_m",
+        "rpe_1m_pct",
+        "drift_pct",
+        "scale_error_pct",
+        "nees_pos_mean",
+        "ms_per_frame_median",
+        "frames",
+        "path_length_m",
+    }
     assert keys <= set(ev), sorted(set(ev))
     assert (ev_dir / "estimate_tum.txt").is_file() and (ev_dir / "groundtruth_tum.txt").is_file()
 
@@ -42,8 +52,9 @@ def test_fly_and_failures_keep_their_json_keys(runner, tmp_path):
     args = ["fly", "fly-hover", "--estimator", "ground-truth", "--seconds", "3", "--json"]
     fly = _json(runner.invoke(app, args))
     assert {"hover_rms_m", "max_err_m", "ate_posyaw_m", "crashed", "diverged", "realtime_factor"} <= set(fly)
-    rep = _json(runner.invoke(app, ["failures", "--name", "fail-feature-poverty", "--out", str(tmp_path),
-                                    "--json"]))
+    rep = _json(
+        runner.invoke(app, ["failures", "--name", "fail-feature-poverty", "--out", str(tmp_path), "--json"])
+    )
     (one,) = rep["failures"]
     assert one["detected"] is True and one["expected_condition"] == "feature_poverty"
     assert (tmp_path / "fail-feature-poverty_error.png").is_file() and (tmp_path / "report.json").is_file()

@@ -8,7 +8,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from viotb.envs.data.euroc import load_image, read_euroc, write_euroc
+from viotb.envs.data.euroc import load_image, read_euroc
+from viotb.envs.data.euroc_writer import write_euroc
 from viotb.vio.camera import CameraCalibration, PinholeCamera
 from viotb.vio.types import ImuNoise, ImuSeries, TrajectoryArrays
 

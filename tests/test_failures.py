@@ -27,8 +27,12 @@ def test_registered_open_and_closed_loop():
 
 @pytest.mark.parametrize(
     ("name", "latest_s"),
-    [("fail-bad-init", 1.6), ("fail-no-excitation", 6.5), ("fail-feature-poverty", 2.0),
-     ("fail-gyro-saturation", 4.0)],
+    [
+        ("fail-bad-init", 1.6),
+        ("fail-no-excitation", 6.5),
+        ("fail-feature-poverty", 2.0),
+        ("fail-gyro-saturation", 4.0),
+    ],
 )
 def test_monitor_names_the_failure(name, latest_s):
     spec = FAILURES[name]
@@ -97,8 +101,13 @@ def test_time_offset_error_grows_with_speed():
     """
     ate = []
     for speed in (0.5, 1.0, 2.0):
-        cfg = StreamConfig(motion="figure8", seconds=SYNC_SECONDS, speed_scale=speed, time_offset_s=0.01,
-                           faults=SensorFaults(assumed_time_offset_s=0.0))
+        cfg = StreamConfig(
+            motion="figure8",
+            seconds=SYNC_SECONDS,
+            speed_scale=speed,
+            time_offset_s=0.01,
+            faults=SensorFaults(assumed_time_offset_s=0.0),
+        )
         ate.append(run_stream(synthesize_stream(cfg, 0)).metrics["ate_m"])
     assert ate[2] > 2.0 * ate[0] and ate[2] > ate[1], ate
 
@@ -139,8 +148,11 @@ def _scale_symptoms(seeds) -> dict:
         rows, flags, nis, others = [], [], [], set()
         for seed in seeds:
             r = run_stream(synthesize_stream(replace(cfg, landmark_count=600), seed), prm)
-            nis += [h.nis_per_dof for h, e in zip(r.run.health, r.run.estimates, strict=True)
-                    if e is not None and np.isfinite(h.nis_per_dof) and EARLY_S[0] <= e.t_s < CRUISE_END_S]
+            nis += [
+                h.nis_per_dof
+                for h, e in zip(r.run.health, r.run.estimates, strict=True)
+                if e is not None and np.isfinite(h.nis_per_dof) and EARLY_S[0] <= e.t_s < CRUISE_END_S
+            ]
             others |= {c.name for c in r.run.monitor.report()} - {"insufficient_excitation"}
             _, early_sig = along_track_velocity_stats(r, *EARLY_S, relative=True)
             late_err, late_sig = along_track_velocity_stats(r, *LATE_S, relative=True)
@@ -150,10 +162,16 @@ def _scale_symptoms(seeds) -> dict:
             rows.append([late_err, early_sig, late_sig, e[k], s[k]])
             flags.append(r.run.monitor.first_time("insufficient_excitation"))
         a = np.array(rows)
-        out[name] = {"late_err": float(np.sqrt(np.mean(a[:, 0] ** 2))), "early_sig": float(np.mean(a[:, 1])),
-                     "late_sig": float(np.mean(a[:, 2])), "pos_err_m": float(np.sqrt(np.mean(a[:, 3] ** 2))),
-                     "path_m": float(np.mean(a[:, 4])), "flags": flags, "nis": float(np.mean(nis)),
-                     "others": others}
+        out[name] = {
+            "late_err": float(np.sqrt(np.mean(a[:, 0] ** 2))),
+            "early_sig": float(np.mean(a[:, 1])),
+            "late_sig": float(np.mean(a[:, 2])),
+            "pos_err_m": float(np.sqrt(np.mean(a[:, 3] ** 2))),
+            "path_m": float(np.mean(a[:, 4])),
+            "flags": flags,
+            "nis": float(np.mean(nis)),
+            "others": others,
+        }
     return out
 
 
@@ -191,10 +209,12 @@ def test_no_excitation_leaves_the_scale_error_uncorrected_monte_carlo():
 
 def _fake_result(t_s, p_est, v_est, cov, p_gt, v_gt):
     """A duck-typed RunResult with hand-made estimates and truth (only the fields the helpers read)."""
-    ests = [StateEstimate(float(t), np.eye(3), p, v, cov=cov)
-            for t, p, v in zip(t_s, p_est, v_est, strict=True)]
-    truth = TrajectoryArrays(np.asarray(t_s), np.asarray(p_gt), np.tile([1.0, 0, 0, 0], (len(t_s), 1)),
-                             np.asarray(v_gt))
+    ests = [
+        StateEstimate(float(t), np.eye(3), p, v, cov=cov) for t, p, v in zip(t_s, p_est, v_est, strict=True)
+    ]
+    truth = TrajectoryArrays(
+        np.asarray(t_s), np.asarray(p_gt), np.tile([1.0, 0, 0, 0], (len(t_s), 1)), np.asarray(v_gt)
+    )
     return SimpleNamespace(run=SimpleNamespace(estimates=[None, *ests]), stream=SimpleNamespace(truth=truth))
 
 
@@ -231,8 +251,10 @@ def test_online_extrinsic_calibration_fixes_the_extrinsic_run():
 
 @pytest.mark.parametrize(
     ("name", "named", "latest_s"),
-    [("fail-time-offset", "time_offset_miscalibrated", 4.0),
-     ("fail-extrinsic", "extrinsic_miscalibrated", 4.0)],
+    [
+        ("fail-time-offset", "time_offset_miscalibrated", 4.0),
+        ("fail-extrinsic", "extrinsic_miscalibrated", 4.0),
+    ],
 )
 def test_joint_online_calibration_tells_time_offset_from_extrinsic(name, named, latest_s):
     """Both calibrations on: only the wrong one moves, so the monitor names the cause and not the other.
@@ -307,16 +329,18 @@ def test_confident_wrong_start_is_named_divergence():
     ``divergence`` at 8.45 s (started at 3.5 s), 24 m from the truth at the end; before the monitor's
     unused-features test nothing was raised.
     """
-    from viotb.vio.lie import exp_so3  # noqa: PLC0415
+    from viotb.vio.lie import exp_so3
 
-    cfg = StreamConfig(motion="hover", seconds=8.0, landmark_count=600, start_in_flight_s=3.5,
-                       initial_scale_error=0.2)
+    cfg = StreamConfig(
+        motion="hover", seconds=8.0, landmark_count=600, start_in_flight_s=3.5, initial_scale_error=0.2
+    )
     stream = synthesize_stream(cfg, 0)
     init = stream.external_init
     speed = max(float(np.linalg.norm(init.v_WB)), 0.2)
     confident = np.repeat([np.deg2rad(0.2) ** 2, 1e-6, (0.01 * speed) ** 2, 1e-6, 0.02**2], 3)
-    stream.external_init = replace(init, R_WB=exp_so3(np.array([np.deg2rad(3.0), 0.0, 0.0])) @ init.R_WB,
-                                   cov_diag=confident)
+    stream.external_init = replace(
+        init, R_WB=exp_so3(np.array([np.deg2rad(3.0), 0.0, 0.0])) @ init.R_WB, cov_diag=confident
+    )
     r = run_stream(stream)
     t = r.run.monitor.first_time("divergence")
     assert t is not None and t < 9.5, r.run.monitor.report()
@@ -324,10 +348,10 @@ def test_confident_wrong_start_is_named_divergence():
 
 
 def test_closed_loop_and_recorded_failures_follow_the_severity(tmp_path):
-    from viotb.envs.data.euroc import read_euroc  # noqa: PLC0415
-    from viotb.envs.data.record import record_scenario  # noqa: PLC0415
+    from viotb.envs.data.euroc import read_euroc
+    from viotb.envs.data.record import record_scenario
     from viotb.envs.scenarios.failures import failure_fly_scenario, failure_record_scenario
-    from viotb.vio.lie import log_so3  # noqa: PLC0415
+    from viotb.vio.lie import log_so3
 
     off = failure_fly_scenario("fly-fail-time-offset", 2.0).rig
     assert off.camera.time_offset_s == pytest.approx(0.02) and off.faults.assumed_time_offset_s == 0.0

@@ -121,8 +121,9 @@ def test_time_offset_in_flight_is_fixed_and_named_by_online_calibration():
     nothing, with or without calibration (1.8 / 1.9 cm).
     """
     bad, _ = fly("fly-fail-time-offset", "msckf", seconds=20.0, seed=0, frontend="sim")
-    good, _ = fly("fly-fail-time-offset", "msckf", seconds=20.0, seed=0, frontend="sim",
-                  online_calibration=True)
+    good, _ = fly(
+        "fly-fail-time-offset", "msckf", seconds=20.0, seed=0, frontend="sim", online_calibration=True
+    )
     assert good["hover_rms_m"] < 0.25 * bad["hover_rms_m"], (bad["hover_rms_m"], good["hover_rms_m"])
     assert [c["name"] for c in bad["conditions"]] == ["time_sync_or_extrinsic_suspected"], bad["conditions"]
     assert [c["name"] for c in good["conditions"]] == ["time_offset_miscalibrated"], good["conditions"]

@@ -20,8 +20,9 @@ def _texture(rng: np.random.Generator, h: int = 240, w: int = 320) -> np.ndarray
 
 def _shift(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
     M = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]])
-    return cv2.warpAffine(img, M, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REFLECT)
+    return cv2.warpAffine(
+        img, M, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+    )
 
 
 def test_klt_tracks_a_known_shift():
@@ -52,11 +53,14 @@ def test_klt_blank_missing_and_wrong_size_images():
 
 def test_klt_on_real_euroc_frames_of_a_still_rig():
     files = sorted((EUROC_CAM / "data").glob("*.png"))[:3]
-    cam = PinholeCamera(752, 480, 458.654, 457.296, 367.215, 248.375,
-                        (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05))
+    cam = PinholeCamera(
+        752, 480, 458.654, 457.296, 367.215, 248.375, (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
+    )
     trk = KltTracker(cam)
-    tracks = [trk.process(CameraFrame(float(i), image=cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)), float(i))
-              for i, f in enumerate(files)]
+    tracks = [
+        trk.process(CameraFrame(float(i), image=cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)), float(i))
+        for i, f in enumerate(files)
+    ]
     assert all(len(t) >= 140 for t in tracks)  # target 180; FAST finds ~150 corners on frame 0
     common, ia, ib = np.intersect1d(tracks[0].ids, tracks[2].ids, return_indices=True)
     assert len(common) > 0.9 * len(tracks[0])

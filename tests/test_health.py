@@ -14,8 +14,15 @@ def _feed_imu(mon: HealthMonitor, seconds: float, rng, accel_std: float, gyro: f
         mon.observe_imu(ImuSample(t, np.array([gyro, 0.0, 0.0]), acc, saturated=abs(t - sat_at) < 1e-9))
 
 
-def _fly(mon: HealthMonitor, seconds: float, rng, R_WB: np.ndarray, accel_W, speed_m_s: float,
-         noise_m_s2: float = 0.01) -> None:
+def _fly(
+    mon: HealthMonitor,
+    seconds: float,
+    rng,
+    R_WB: np.ndarray,
+    accel_W,
+    speed_m_s: float,
+    noise_m_s2: float = 0.01,
+) -> None:
     """Feed 200 Hz IMU samples of a body with a fixed attitude and a world acceleration ``accel_W(t)``.
 
     After every 10th sample the monitor also gets an estimate (true attitude, speed ``speed_m_s`` along x).
@@ -116,8 +123,14 @@ def test_initialization_timeout_and_gravity_norm():
 
 def _sync_frames(mon: HealthMonitor, nis: float, speed_m_s: float, n: int = 40, n_features: int = 30):
     for k in range(n):
-        est = StateEstimate(k * 0.05, np.eye(3), np.zeros(3), np.array([speed_m_s, 0.0, 0.0]),
-                            omega_B_rad_s=np.array([0.0, 0.0, 0.1]), cov=np.eye(15) * 1e-4)
+        est = StateEstimate(
+            k * 0.05,
+            np.eye(3),
+            np.zeros(3),
+            np.array([speed_m_s, 0.0, 0.0]),
+            omega_B_rad_s=np.array([0.0, 0.0, 0.1]),
+            cov=np.eye(15) * 1e-4,
+        )
         h = HealthStatus(k * 0.05, True, 60, updated_features=n_features, nis_per_dof_all=nis)
         mon.observe_frame(k * 0.05, h, est)
 
@@ -157,7 +170,7 @@ def test_moving_past_features_that_never_enter_an_update_is_divergence():
 
 
 def test_calibration_drift_names_the_calibration_that_moved():
-    from viotb.vio.types import CalibrationDrift  # noqa: PLC0415
+    from viotb.vio.types import CalibrationDrift
 
     est = StateEstimate(1.0, np.eye(3), np.zeros(3), np.zeros(3), cov=np.eye(15) * 1e-4)
     deg = np.deg2rad(1.0)
@@ -173,12 +186,18 @@ def test_calibration_drift_names_the_calibration_that_moved():
     assert named(CalibrationDrift(time_offset_s=0.003, time_offset_sigma_s=1e-3)) == set()  # 3 sigma
     assert named(CalibrationDrift(time_offset_s=0.001, time_offset_sigma_s=1e-5)) == set()  # below 2 ms
     zeros, tiny = np.zeros(3), np.full(3, 1e-3)
-    rot = CalibrationDrift(rotation_BC_rad=np.array([deg, 0.0, 0.0]),
-                           rotation_sigma_rad=np.full(3, 0.02 * deg), translation_BC_m=zeros,
-                           translation_sigma_m=tiny)
+    rot = CalibrationDrift(
+        rotation_BC_rad=np.array([deg, 0.0, 0.0]),
+        rotation_sigma_rad=np.full(3, 0.02 * deg),
+        translation_BC_m=zeros,
+        translation_sigma_m=tiny,
+    )
     assert named(rot) == {"extrinsic_miscalibrated"}
-    small = CalibrationDrift(rotation_BC_rad=np.array([0.3 * deg, 0.0, 0.0]), rotation_sigma_rad=tiny * 1e-3,
-                             translation_BC_m=np.array([0.03, 0.0, 0.0]),
-                             translation_sigma_m=np.full(3, 0.01))
+    small = CalibrationDrift(
+        rotation_BC_rad=np.array([0.3 * deg, 0.0, 0.0]),
+        rotation_sigma_rad=tiny * 1e-3,
+        translation_BC_m=np.array([0.03, 0.0, 0.0]),
+        translation_sigma_m=np.full(3, 0.01),
+    )
     assert named(small) == set()  # 0.3 deg is below 0.5 deg; 3 cm is only 3 sigma
     assert named(CalibrationDrift()) == set()  # nothing estimated (all NaN)

@@ -113,8 +113,8 @@ def run_synthetic(seed: int, seconds: float, params: MsckfParams | None = None, 
             est.feed_camera(CameraFrame(t_s=t, features=world.observe(t, rng, sigma_px)))
             e = est.estimate()
             assert e is not None
-            P_pp = e.cov[POS:POS + 3, POS:POS + 3]
-            P_tt = e.cov[THETA:THETA + 3, THETA:THETA + 3]
+            P_pp = e.cov[POS : POS + 3, POS : POS + 3]
+            P_tt = e.cov[THETA : THETA + 3, THETA : THETA + 3]
             rows.append((t, e.p_WB - p, P_pp, R, e.R_WB, P_tt, est.health()))
     return rows, est
 
@@ -196,7 +196,7 @@ def test_euroc_static_start_stays_put_with_klt():
     assert inited and inited[0] < 40  # static initialization after its 1.5 s window
     p = np.array([e.p_WB for _, h, e in out if e is not None])
     assert np.linalg.norm(p - p[0], axis=1).max() < 0.05
-    assert all(h.tracked_features > 100 and not h.diverged for h in health[inited[0]:])
+    assert all(h.tracked_features > 100 and not h.diverged for h in health[inited[0] :])
     # The ground-truth orientation's tilt: gravity direction agrees within 1 degree.
     R_gt = quat_wxyz_to_rotmat(ds.groundtruth.quat_wxyz_WB[0])
     e_last = out[-1][2]
@@ -296,7 +296,7 @@ def _update_after_first_estimate_offsets(linearization: str):
         e.feed_camera(frame)
         assert e.last_stats.used > 0
     sig, sig_twin = np.sqrt(np.diag(est.state.cov)[:15]), np.sqrt(np.diag(twin.state.cov)[:15])
-    dp = np.abs(est.state.imu.p_WB - twin.state.imu.p_WB) / sig[POS:POS + 3]
+    dp = np.abs(est.state.imu.p_WB - twin.state.imu.p_WB) / sig[POS : POS + 3]
     return float(dp.max()), float(np.max(np.abs(sig_twin / sig - 1.0)))
 
 

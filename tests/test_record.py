@@ -107,10 +107,10 @@ def test_bad_requests(tmp_path):
 
 def test_failure_recordings_carry_their_wrong_calibration_and_imu_faults(tmp_path):
     """``fail-*`` recordings hold what the failure needs: the wrong calibration file, the faulty IMU."""
-    from viotb.envs.sim.render import camera_calibration  # noqa: PLC0415
-    from viotb.envs.sim.simulation import Simulation  # noqa: PLC0415
-    from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY  # noqa: PLC0415
-    from viotb.vio.lie import log_so3  # noqa: PLC0415
+    from viotb.envs.sim.render import camera_calibration
+    from viotb.envs.sim.simulation import Simulation
+    from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY
+    from viotb.vio.lie import log_so3
 
     sim = Simulation("quadrotor", "textured_room")
     true_R_BC = camera_calibration(sim.model, ONBOARD_CAMERA, QUAD_BODY, 320, 240).R_BC
@@ -135,7 +135,7 @@ def test_motion_blur_costs_klt_tracks_during_a_spin(tmp_path):
     Measured (seed 0) during the 3 rad/s part (2.5-4 s): 180 tracked features sharp, 91 (min 63) blurred;
     feature updates 476 -> 245.
     """
-    from viotb.envs.data.evaluate import EvalOptions, run_estimator  # noqa: PLC0415
+    from viotb.envs.data.evaluate import EvalOptions, run_estimator
 
     tracked = {}
     for name in ("fast-rotation", "fast-rotation-blur"):

@@ -1,16 +1,12 @@
-"""Tests of envs/regress.py: passes on its baseline, fails on a degraded filter or a tight baseline."""
+"""Tests of envs/tools/regress.py: passes on its baseline, fails on a degraded filter or a tight baseline."""
 
 from __future__ import annotations
 
 import json
 
 import pytest
-<<<<<<< HEAD
 from viotb.envs.tools.regress import DEFAULT_BASELINE, compare, load_baseline, run_suite, write_baseline
-=======
-from viotb.envs.regress import DEFAULT_BASELINE, compare, load_baseline, run_suite, write_baseline
 from viotb.vio.keyframing import KeyframeParams
->>>>>>> vio
 from viotb.vio.msckf import MsckfParams
 
 
@@ -29,13 +25,17 @@ def test_passes_on_committed_baseline_and_is_deterministic(hover_result):
     assert rows and all(r["ok"] for r in rows), rows
     # Same seed, same metrics up to BLAS round-off across processes (measured 1.4e-9 relative).
     for metric in ("ate_m", "final_err_m", "nees_pos"):
-        assert hover_result["cases"]["hover-sim"][metric] == pytest.approx(base["cases"]["hover-sim"][metric],
-                                                                           rel=1e-6)
+        assert hover_result["cases"]["hover-sim"][metric] == pytest.approx(
+            base["cases"]["hover-sim"][metric], rel=1e-6
+        )
 
 
 def test_fails_on_degraded_filter():
-    bad = run_suite(fly_case=False, only=("hover-sim",), params=MsckfParams(
-        pixel_sigma_px=8.0, max_clones=4, keyframing=KeyframeParams(every_n_frames=1)))
+    bad = run_suite(
+        fly_case=False,
+        only=("hover-sim",),
+        params=MsckfParams(pixel_sigma_px=8.0, max_clones=4, keyframing=KeyframeParams(every_n_frames=1)),
+    )
     rows = compare(bad, _only(load_baseline(DEFAULT_BASELINE), "hover-sim"))
     assert not all(r["ok"] for r in rows)
 
@@ -62,7 +62,7 @@ def test_fails_on_perturbed_baseline_and_bad_files(hover_result, tmp_path):
 
 
 def test_short_run_is_compared_on_the_short_cases_only(hover_result, tmp_path):
-    from viotb.envs.tools.regress import IMAGE_CASES, case_names, regress  # noqa: PLC0415
+    from viotb.envs.tools.regress import IMAGE_CASES, case_names, regress
 
     base = load_baseline(DEFAULT_BASELINE)
     # The committed baseline holds the full set, image cases included.

@@ -90,8 +90,17 @@ def test_extrinsics_agree_with_cam_xmat(room):
 
 
 def _marker_model() -> tuple[mujoco.MjModel, np.ndarray]:
-    markers = [(2.5, -1.2, 0.3), (2.5, 0.0, 1.0), (2.5, 1.2, 0.6), (3.5, -0.8, 1.4), (3.5, 0.9, -0.2),
-               (2.0, 0.5, 0.0), (3.0, -1.8, 0.9), (4.0, 1.6, 1.8), (2.2, -0.3, -0.4)]
+    markers = [
+        (2.5, -1.2, 0.3),
+        (2.5, 0.0, 1.0),
+        (2.5, 1.2, 0.6),
+        (3.5, -0.8, 1.4),
+        (3.5, 0.9, -0.2),
+        (2.0, 0.5, 0.0),
+        (3.0, -1.8, 0.9),
+        (4.0, 1.6, 1.8),
+        (2.2, -0.3, -0.4),
+    ]
     geoms = "".join(
         f'<geom name="marker_{i}" type="sphere" size="0.04" pos="{x} {y} {z}" material="glow"/>'
         for i, (x, y, z) in enumerate(markers)

@@ -85,9 +85,9 @@ def test_scenario_is_frozen():
 
 
 def test_sensor_faults_told_calibration_and_imu_input():
-    from viotb.envs.sim.faults import SensorFaults  # noqa: PLC0415
-    from viotb.vio.camera import CameraCalibration, PinholeCamera  # noqa: PLC0415
-    from viotb.vio.lie import log_so3  # noqa: PLC0415
+    from viotb.envs.sim.faults import SensorFaults
+    from viotb.vio.camera import CameraCalibration, PinholeCamera
+    from viotb.vio.lie import log_so3
 
     cam = PinholeCamera(320, 240, 250.0, 250.0, 160.0, 120.0)
     true = CameraCalibration(cam, np.eye(3), np.zeros(3), time_offset_s=0.01)
@@ -100,7 +100,8 @@ def test_sensor_faults_told_calibration_and_imu_input():
     np.testing.assert_array_equal(same.R_BC, true.R_BC)
     assert same.time_offset_s == 0.01
     omega, f = SensorFaults(extra_gyro_bias_rad_s=0.1, accel_scale_error=0.05).imu_input(
-        np.zeros((2, 3)), np.tile([0.0, 0.0, 9.81], (2, 1)))
+        np.zeros((2, 3)), np.tile([0.0, 0.0, 9.81], (2, 1))
+    )
     np.testing.assert_allclose(omega, 0.1)
     np.testing.assert_allclose(f[:, 2], 1.05 * 9.81)
     with pytest.raises(ValueError, match="extrinsic_error_rad"):

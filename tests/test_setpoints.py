@@ -119,8 +119,9 @@ def test_figure_eight_forever_and_bad_laps() -> None:
 
 
 def test_straight_line_cruises_at_constant_speed_and_ends_at_rest() -> None:
-    sp = StraightLine(start_W_m=[-2.0, 0.5, 1.0], direction_W=[2.0, 0.0, 0.0], length_m=4.0, speed_m_s=0.8,
-                      ramp_s=2.0)
+    sp = StraightLine(
+        start_W_m=[-2.0, 0.5, 1.0], direction_W=[2.0, 0.0, 0.0], length_m=4.0, speed_m_s=0.8, ramp_s=2.0
+    )
     assert sp.duration_s == pytest.approx(4.0 / 0.8 + 2.0, abs=1e-12)
     _check_derivatives(sp, np.random.default_rng(0).uniform(0.01, sp.duration_s - 0.01, 20))
     for t, p in ((0.0, [-2.0, 0.5, 1.0]), (sp.duration_s, [2.0, 0.5, 1.0])):

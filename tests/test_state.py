@@ -27,10 +27,16 @@ def _random_spd(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def _state(rng: np.random.Generator, calib: bool = True) -> State:
-    imu = ImuValues(exp_so3(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3), np.zeros(3),
-                    np.zeros(3))
+    imu = ImuValues(
+        exp_so3(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3), np.zeros(3), np.zeros(3)
+    )
     return State(
-        0.0, imu, _random_spd(rng, 15), np.eye(3), np.zeros(3), 0.0,
+        0.0,
+        imu,
+        _random_spd(rng, 15),
+        np.eye(3),
+        np.zeros(3),
+        0.0,
         extrinsic_cov=_random_spd(rng, 6) * 1e-3 if calib else None,
         time_offset_var_s2=1e-4 if calib else None,
     )
@@ -57,8 +63,8 @@ def test_augment_clone_copies_pose_covariance_and_time_offset_jacobian():
     P0 = st.cov.copy()
     blk = augment_clone(st, 1.0, omega)
     J = np.zeros((6, 22))
-    J[0:3, THETA:THETA + 3] = np.eye(3)
-    J[3:6, POS:POS + 3] = np.eye(3)
+    J[0:3, THETA : THETA + 3] = np.eye(3)
+    J[3:6, POS : POS + 3] = np.eye(3)
     J[0:3, 21] = omega
     J[3:6, 21] = st.imu.v_WB
     np.testing.assert_allclose(marginal_covariance(st, [blk]), J @ P0 @ J.T, atol=1e-12)
@@ -98,7 +104,7 @@ def test_ekf_update_matches_textbook_kalman_and_boxplus():
     dx = ekf_update(st, H, r, R)
     np.testing.assert_allclose(dx, K @ r, atol=1e-12)
     np.testing.assert_allclose(st.cov, (np.eye(st.dim) - K @ H) @ P, atol=1e-10)
-    np.testing.assert_allclose(st.imu.p_WB, p_before + dx[POS:POS + 3], atol=1e-14)
+    np.testing.assert_allclose(st.imu.p_WB, p_before + dx[POS : POS + 3], atol=1e-14)
     np.testing.assert_allclose(st.imu.R_WB, R_before @ exp_so3(dx[0:3]), atol=1e-14)
     _assert_sym_psd(st)
     with pytest.raises(ValueError, match="do not match"):

@@ -39,8 +39,11 @@ def test_feature_jacobian_matches_central_differences():
             R_WB @ exp_so3(dpose[:3]), p_WB + dpose[3:], R_BC @ exp_so3(dext[:3]), p_BC + dext[3:], p_f + df
         ).z_norm
 
-    for name, H, size, key in (("pose", jac.H_pose, 6, "dpose"), ("ext", jac.H_extrinsic, 6, "dext"),
-                               ("feature", jac.H_feature, 3, "df")):
+    for name, H, size, key in (
+        ("pose", jac.H_pose, 6, "dpose"),
+        ("ext", jac.H_extrinsic, 6, "dext"),
+        ("feature", jac.H_feature, 3, "df"),
+    ):
         num = np.zeros((2, size))
         for i in range(size):
             d = np.zeros(size)
@@ -127,8 +130,8 @@ def test_clone_unobservable_basis_matches_a_global_yaw_and_shift_of_the_clones()
     Rz = exp_so3(np.array([0.0, 0.0, alpha]))
     dx = np.zeros(dim)
     for k, o in enumerate(offsets):
-        dx[o:o + 3] = log_so3(R[k].T @ Rz @ R[k])  # R' = R Exp(dtheta)
-        dx[o + 3:o + 6] = Rz @ p[k] + shift - p[k]
+        dx[o : o + 3] = log_so3(R[k].T @ Rz @ R[k])  # R' = R Exp(dtheta)
+        dx[o + 3 : o + 6] = Rz @ p[k] + shift - p[k]
     # Values are ~1e-6; the neglected second-order term is alpha^2 |p| ~ 1e-11.
     np.testing.assert_allclose(U @ np.r_[shift, alpha], dx, rtol=0.0, atol=1e-10)
     assert np.all(U[:15] == 0.0)

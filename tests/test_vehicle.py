@@ -1,4 +1,4 @@
-"""Tests for viotb.controllers.vehicle and viotb.envs.sim.vehicle (parameters and truth read from the MJCF)."""
+"""Tests of viotb.controllers.vehicle and viotb.envs.sim.vehicle (parameters and truth from the MJCF)."""
 
 from __future__ import annotations
 

@@ -53,8 +53,13 @@ def test_schur_rejects_bad_shapes_and_indices():
 
 # ----------------------------------------------------------------------------------------- Jacobians
 def _random_values(rng: np.random.Generator) -> ImuValues:
-    return ImuValues(exp_so3(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3),
-                     0.01 * rng.normal(size=3), 0.1 * rng.normal(size=3))
+    return ImuValues(
+        exp_so3(rng.normal(size=3)),
+        rng.normal(size=3),
+        rng.normal(size=3),
+        0.01 * rng.normal(size=3),
+        0.1 * rng.normal(size=3),
+    )
 
 
 def _numeric_jacobian(fun, x: ImuValues, eps: float = 1e-6) -> np.ndarray:
@@ -94,8 +99,9 @@ def test_imu_factor_residual_zero_at_prediction():
     for _ in range(20):
         pre.integrate(rng.normal(size=3) + [0, 0, 9.81], rng.normal(size=3), 0.005)
     xi = _random_values(rng)
-    R, p, v = pre.predict(xi.R_WB, xi.p_WB, xi.v_WB, np.array([0.0, 0.0, -9.81]), xi.gyro_bias_rad_s,
-                          xi.accel_bias_m_s2)
+    R, p, v = pre.predict(
+        xi.R_WB, xi.p_WB, xi.v_WB, np.array([0.0, 0.0, -9.81]), xi.gyro_bias_rad_s, xi.accel_bias_m_s2
+    )
     xj = ImuValues(R, p, v, xi.gyro_bias_rad_s, xi.accel_bias_m_s2)
     r, *_ = imu_factor(pre, xi, xj, noise)
     np.testing.assert_allclose(r, 0.0, atol=1e-10)
@@ -153,8 +159,9 @@ def _run_window(stream) -> tuple[WindowEstimator, float, dict]:
     from viotb.envs.run.replay import monitor_run
     from viotb.vio.metrics import align_umeyama
 
-    est = WindowEstimator(stream.calib_given, stream.noise,
-                          WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px))
+    est = WindowEstimator(
+        stream.calib_given, stream.noise, WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
+    )
     t0 = time.perf_counter()
     run = monitor_run(est, stream.imu, stream.frames, stream.time_offset_s)
     wall = time.perf_counter() - t0
@@ -220,8 +227,9 @@ def test_divergence_reported_through_health_not_raised():
     accel = stream.imu.accel_B_m_s2.copy()
     accel[stream.imu.t_s > 2.5] += [300.0, 0.0, 0.0]
     imu = ImuSeries(stream.imu.t_s, stream.imu.gyro_B_rad_s, accel, stream.imu.saturated)
-    est = WindowEstimator(stream.calib_given, stream.noise,
-                          WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px))
+    est = WindowEstimator(
+        stream.calib_given, stream.noise, WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
+    )
     assert isinstance(est, Estimator)
     run = monitor_run(est, imu, stream.frames, stream.time_offset_s)
     h = run.health[-1]
@@ -255,8 +263,16 @@ def test_initialize_reports_the_initial_covariance_and_state():
     from viotb.vio.initialization import InitResult
 
     cov_diag = np.arange(1, 16) * 1e-4
-    init = InitResult(1.0, exp_so3(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, 3.0]), np.zeros(3),
-                      np.zeros(3), np.zeros(3), "static", cov_diag)
+    init = InitResult(
+        1.0,
+        exp_so3(np.array([0.1, -0.2, 0.3])),
+        np.array([1.0, 2.0, 3.0]),
+        np.zeros(3),
+        np.zeros(3),
+        np.zeros(3),
+        "static",
+        cov_diag,
+    )
     est = WindowEstimator(_calib(), ImuNoise(), WindowParams(frontend="sim"))
     est.initialize(init)
     e = est.estimate()
@@ -264,8 +280,11 @@ def test_initialize_reports_the_initial_covariance_and_state():
     np.testing.assert_array_equal(e.p_WB, init.p_WB)
     np.testing.assert_allclose(e.cov, np.diag(cov_diag), rtol=1e-12)
     with pytest.raises(ValueError, match="cov_diag"):
-        est.initialize(InitResult(1.0, np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3),
-                                  "static", np.zeros(15)))
+        est.initialize(
+            InitResult(
+                1.0, np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), "static", np.zeros(15)
+            )
+        )
 
 
 MICRO = Path("/work/shared/data/euroc_v1_01_micro")

@@ -15,20 +15,20 @@ characteristic, recognizable ways"):
 2. ``feature_poverty`` -- fewer than ``min_tracked_features`` tracked for ``poverty_frames`` frames in a row.
 3. ``imu_saturation`` -- samples flagged ``saturated`` by the sensor (count and first time in the evidence).
 4. ``time_sync_or_extrinsic_suspected`` -- while the platform moves, the mean normalized innovation
-   squared per degree of freedom (``HealthStatus.nis_per_dof_all``, every triangulated feature of an
-   update, rejected ones included) over a window of updates stays above ``max_nis_per_dof`` times its
-   consistent value 1 ("worsens with speed -> time-sync / extrinsics"). A camera-IMU time offset ``dt``
-   moves the features by ``~ f (|omega| + |v| / Z) dt`` and a rotation error of the extrinsics rotates
-   every ray; both vanish at rest, hence the motion gate. The two causes are *not* told apart: measured on
-   the figure-8 streams of :mod:`viotb.envs.scenarios.failures`, the Pearson correlation over the window between the
-   NIS and the angular or linear speed is near zero or negative for both (the filter absorbs the part of
-   the error that is constant over its window -- a time offset on uniform motion is a rigid shift of the
-   trajectory -- and what is left follows the *changes* of the motion), so the correlations are only
-   reported in the evidence, and the condition is named for both causes. A least-squares fit of the
-   per-update NIS on ``a + b |omega| + c |v|`` over the whole 8 s run (seeds 0-3, 10 ms offset vs 2 deg
-   extrinsic) does not split them either: the angular-rate slope ``b`` is negative for *both* causes
-   (offset -0.53 / -0.07 / -1.21 / -0.60, extrinsic -0.31 / -0.09 / -0.25 / -0.06 per rad/s), so the
-   expected "offset grows with the rate" signature is absent; the speed slope ``c`` is 0.36 / -0.09 /
+   squared per degree of freedom (``HealthStatus.nis_per_dof_all``, every triangulated feature of an update,
+   rejected ones included) over a window of updates stays above ``max_nis_per_dof`` times its consistent value
+   1 ("worsens with speed -> time-sync / extrinsics"). A camera-IMU time offset ``dt`` moves the features by
+   ``~ f (|omega| + |v| / Z) dt`` and a rotation error of the extrinsics rotates every ray; both vanish at
+   rest, hence the motion gate. The two causes are *not* told apart: measured on the figure-8 streams of
+   :mod:`viotb.envs.scenarios.failures`, the Pearson correlation over the window between the NIS and the
+   angular or linear speed is near zero or negative for both (the filter absorbs the part of the error that is
+   constant over its window -- a time offset on uniform motion is a rigid shift of the trajectory -- and what
+   is left follows the *changes* of the motion), so the correlations are only reported in the evidence, and
+   the condition is named for both causes. A least-squares fit of the per-update NIS on ``a + b |omega| + c
+   |v|`` over the whole 8 s run (seeds 0-3, 10 ms offset vs 2 deg extrinsic) does not split them either: the
+   angular-rate slope ``b`` is negative for *both* causes (offset -0.53 / -0.07 / -1.21 / -0.60, extrinsic
+   -0.31 / -0.09 / -0.25 / -0.06 per rad/s), so the expected "offset grows with the rate" signature is absent;
+   the speed slope ``c`` is 0.36 / -0.09 /
    0.64 / 0.29 per m/s with the offset and 0.06 / -0.01 / 0.04 / 0.02 with the extrinsic error (nominal
    0.00 / -0.00 / -0.01), so a threshold on ``c`` misnames seed 1 of the offset; and the extrinsic error's
    NIS does persist in the slowest third of the updates (1.32-1.47) but so does the offset's (1.61-2.18).

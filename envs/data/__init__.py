@@ -1,1 +1,1 @@
-"""data wing: EuRoC ASL and TUM files, recording a scenario to disk, and evaluating an estimator on a dataset."""
+"""data wing: EuRoC ASL and TUM files, recording a scenario, and evaluating an estimator on a dataset."""

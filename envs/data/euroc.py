@@ -1,4 +1,4 @@
-"""EuRoC ASL dataset folders: reader (real or recorded) and writer.
+"""EuRoC ASL dataset folders: the reader, for real or recorded data (the writer is :mod:`.euroc_writer`).
 
 Layout (Burri et al., "The EuRoC micro aerial vehicle datasets", IJRR 2016)::
 
@@ -18,7 +18,6 @@ parsing. The camera clock offset, when non-zero, is stored as Kalibr's ``timeshi
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +38,7 @@ GT_HEADER = (
     "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
 )
 LANDMARK_HEADER = "#id,p_x [m],p_y [m],p_z [m]"
-_NS_PER_S = 1_000_000_000
+NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -271,8 +270,12 @@ def read_euroc(path: Path | str) -> EurocDataset:
 
     imu_path = root / "imu0" / "data.csv"
     imu_t_ns, imu_values = _read_numeric_csv(imu_path, 7)
-    imu = ImuSeries(_ns_to_s(imu_t_ns), imu_values[:, :3].copy(), imu_values[:, 3:].copy(),
-                    np.zeros(len(imu_t_ns), dtype=bool))
+    imu = ImuSeries(
+        _ns_to_s(imu_t_ns),
+        imu_values[:, :3].copy(),
+        imu_values[:, 3:].copy(),
+        np.zeros(len(imu_t_ns), dtype=bool),
+    )
 
     cam_csv = root / "cam0" / "data.csv"
     cam_lines, cam_rows = _read_rows(cam_csv, 2)
@@ -294,8 +297,9 @@ def read_euroc(path: Path | str) -> EurocDataset:
         if bad.size:
             row = int(bad[0])
             raise ValueError(f"{gt_path}: quaternion of data row {row + 1} has norm {norms[row]:.6f}")
-        groundtruth = TrajectoryArrays(_ns_to_s(gt_t_ns), gt[:, 0:3].copy(), quat / norms[:, None],
-                                       gt[:, 7:10].copy())
+        groundtruth = TrajectoryArrays(
+            _ns_to_s(gt_t_ns), gt[:, 0:3].copy(), quat / norms[:, None], gt[:, 7:10].copy()
+        )
         gt_bw, gt_ba = gt[:, 10:13].copy(), gt[:, 13:16].copy()
 
     landmarks = None
@@ -350,176 +354,3 @@ def load_image(dataset: EurocDataset, index: int) -> np.ndarray:
             f"{cam.width}x{cam.height} in cam0/sensor.yaml"
         )
     return image
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Writing.
-
-
-def _to_ns(t_s: np.ndarray, what: str) -> np.ndarray:
-    t_s = np.asarray(t_s, dtype=np.float64)
-    if t_s.ndim != 1 or not np.all(np.isfinite(t_s)):
-        raise ValueError(f"write_euroc: {what} times must be a finite 1-D array, got shape {t_s.shape}")
-    if np.any(t_s < 0.0):
-        raise ValueError(f"write_euroc: {what} times must be >= 0 s, got min {t_s.min()}")
-    t_ns = np.rint(t_s * _NS_PER_S).astype(np.int64)
-    bad = np.flatnonzero(np.diff(t_ns) <= 0)
-    if bad.size:
-        i = int(bad[0])
-        raise ValueError(
-            f"write_euroc: {what} times must strictly increase: [{i}]={t_s[i]}, [{i + 1}]={t_s[i + 1]}"
-        )
-    return t_ns
-
-
-def _fmt(values: np.ndarray) -> str:
-    return ",".join(repr(float(v)) for v in values)
-
-
-def _yaml_list(values: Iterable[float]) -> str:
-    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
-
-
-def _write_camera_yaml(path: Path, calib: CameraCalibration) -> None:
-    cam = calib.camera
-    T = np.eye(4)
-    T[:3, :3] = calib.R_BC
-    T[:3, 3] = calib.p_BC
-    rows = ",\n         ".join(", ".join(repr(float(v)) for v in T[i]) for i in range(4))
-    text = (
-        "%YAML:1.0\n"
-        "# General sensor definitions.\n"
-        "sensor_type: camera\n"
-        "comment: vio-testbed simulated camera (MuJoCo offscreen render)\n\n"
-        "# Sensor extrinsics wrt. the body-frame.\n"
-        "T_BS:\n  cols: 4\n  rows: 4\n"
-        f"  data: [{rows}]\n\n"
-        "# Camera specific definitions.\n"
-        f"rate_hz: {float(calib.rate_hz)!r}\n"
-        f"resolution: [{cam.width}, {cam.height}]\n"
-        "camera_model: pinhole\n"
-        f"intrinsics: {_yaml_list([cam.fx, cam.fy, cam.cx, cam.cy])} #fu, fv, cu, cv\n"
-        "distortion_model: radial-tangential\n"
-        f"distortion_coefficients: {_yaml_list(cam.distortion)}\n"
-        "# Clock offset (Kalibr convention): t_imu = t_cam + timeshift_cam_imu [s]\n"
-        f"timeshift_cam_imu: {float(calib.time_offset_s)!r}\n"
-    )
-    path.write_text(text)
-
-
-def _write_imu_yaml(path: Path, noise: ImuNoise, rate_hz: float) -> None:
-    text = (
-        "%YAML:1.0\n"
-        "sensor_type: imu\n"
-        "comment: vio-testbed simulated IMU\n\n"
-        "# Sensor extrinsics wrt. the body-frame (the body frame is the IMU frame).\n"
-        "T_BS:\n  cols: 4\n  rows: 4\n"
-        "  data: [1.0, 0.0, 0.0, 0.0,\n         0.0, 1.0, 0.0, 0.0,\n"
-        "         0.0, 0.0, 1.0, 0.0,\n         0.0, 0.0, 0.0, 1.0]\n"
-        f"rate_hz: {float(rate_hz)!r}\n\n"
-        "# inertial sensor noise model parameters (static)\n"
-        f"gyroscope_noise_density: {noise.gyro_noise_density_rad_s_sqrthz!r}     # [ rad / s / sqrt(Hz) ]\n"
-        f"gyroscope_random_walk: {noise.gyro_random_walk_rad_s2_sqrthz!r}       # [ rad / s^2 / sqrt(Hz) ]\n"
-        f"accelerometer_noise_density: {noise.accel_noise_density_m_s2_sqrthz!r}  # [ m / s^2 / sqrt(Hz) ]\n"
-        f"accelerometer_random_walk: {noise.accel_random_walk_m_s3_sqrthz!r}    # [ m / s^3 / sqrt(Hz) ]\n"
-    )
-    path.write_text(text)
-
-
-def write_euroc(
-    out_dir: Path | str,
-    imu: ImuSeries,
-    frames: Iterable[tuple[float, np.ndarray]],
-    calib: CameraCalibration,
-    imu_noise: ImuNoise,
-    groundtruth: TrajectoryArrays | None = None,
-    gt_gyro_bias: np.ndarray | None = None,
-    gt_accel_bias: np.ndarray | None = None,
-    landmarks_W: np.ndarray | None = None,
-    imu_rate_hz: float | None = None,
-) -> Path:
-    """Write a EuRoC ASL tree under ``out_dir/mav0`` and return the ``mav0`` path.
-
-    Args:
-        out_dir: Output folder (created).
-        imu: IMU readings (times >= 0 s, strictly increasing).
-        frames: ``(t_cam_s, image)`` pairs in time order; images (H, W) uint8 of the calibration's size.
-            Consumed lazily, so a generator can render frame by frame.
-        calib: Camera calibration (cam0 ``sensor.yaml``).
-        imu_noise: Densities for ``imu0/sensor.yaml``.
-        groundtruth: Poses of B in W with velocities (zeros are written when ``v_WB`` is None).
-        gt_gyro_bias: True gyro bias at the ground-truth times (rad/s), shape (M, 3); zeros if None.
-        gt_accel_bias: True accelerometer bias (m/s^2), shape (M, 3); zeros if None.
-        landmarks_W: Landmark positions (m), shape (L, 3), written to ``sim_landmarks0/data.csv``.
-        imu_rate_hz: Nominal IMU rate; default from the median sample spacing.
-    """
-    mav0 = Path(out_dir) / "mav0"
-    imu_dir, cam_dir = mav0 / "imu0", mav0 / "cam0"
-    (cam_dir / "data").mkdir(parents=True, exist_ok=True)
-    imu_dir.mkdir(parents=True, exist_ok=True)
-
-    imu_t_ns = _to_ns(imu.t_s, "IMU")
-    n = len(imu_t_ns)
-    if imu.gyro_B_rad_s.shape != (n, 3) or imu.accel_B_m_s2.shape != (n, 3):
-        raise ValueError(f"write_euroc: IMU arrays must be ({n}, 3)")
-    values = np.hstack([imu.gyro_B_rad_s, imu.accel_B_m_s2])
-    if not np.all(np.isfinite(values)):
-        row = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
-        raise ValueError(f"write_euroc: IMU row {row} is not finite: {values[row].tolist()}")
-    with (imu_dir / "data.csv").open("w", newline="") as handle:
-        handle.write(IMU_HEADER + "\n")
-        handle.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(imu_t_ns, values, strict=True))
-    if imu_rate_hz is None:
-        imu_rate_hz = float(1.0 / np.median(np.diff(imu.t_s))) if n > 1 else 200.0
-    _write_imu_yaml(imu_dir / "sensor.yaml", imu_noise, imu_rate_hz)
-    _write_camera_yaml(cam_dir / "sensor.yaml", calib)
-
-    cam = calib.camera
-    last_ns = -1
-    with (cam_dir / "data.csv").open("w", newline="") as handle:
-        handle.write(CAM_HEADER + "\n")
-        for i, (t_s, image) in enumerate(frames):
-            t_ns = int(_to_ns(np.array([t_s]), "camera")[0])
-            if t_ns <= last_ns:
-                raise ValueError(f"write_euroc: camera times must strictly increase, frame {i} at {t_s} s")
-            image = np.asarray(image)
-            if image.dtype != np.uint8 or image.shape != (cam.height, cam.width):
-                raise ValueError(
-                    f"write_euroc: frame {i} must be uint8 of shape ({cam.height}, {cam.width}), "
-                    f"got {image.dtype} {image.shape}"
-                )
-            name = f"{t_ns}.png"
-            if not cv2.imwrite(str(cam_dir / "data" / name), image):
-                raise ValueError(f"write_euroc: could not write {cam_dir / 'data' / name}")
-            handle.write(f"{t_ns},{name}\n")
-            last_ns = t_ns
-
-    if groundtruth is not None:
-        gt_dir = mav0 / "state_groundtruth_estimate0"
-        gt_dir.mkdir(parents=True, exist_ok=True)
-        m = len(groundtruth)
-        gt_t_ns = _to_ns(groundtruth.t_s, "ground-truth")
-        zeros = np.zeros((m, 3))
-        v = zeros if groundtruth.v_WB is None else groundtruth.v_WB
-        bw = zeros if gt_gyro_bias is None else np.asarray(gt_gyro_bias, dtype=float)
-        ba = zeros if gt_accel_bias is None else np.asarray(gt_accel_bias, dtype=float)
-        table = np.hstack([groundtruth.p_WB, groundtruth.quat_wxyz_WB, v, bw, ba])
-        if table.shape != (m, 16):
-            raise ValueError(f"write_euroc: ground-truth arrays must all have {m} rows, got {table.shape}")
-        with (gt_dir / "data.csv").open("w", newline="") as handle:
-            handle.write(GT_HEADER + "\n")
-            handle.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(gt_t_ns, table, strict=True))
-        (gt_dir / "sensor.yaml").write_text(
-            "%YAML:1.0\nsensor_type: visual-inertial\ncomment: vio-testbed simulation ground truth (exact).\n"
-        )
-
-    if landmarks_W is not None:
-        landmarks_W = np.asarray(landmarks_W, dtype=float)
-        if landmarks_W.ndim != 2 or landmarks_W.shape[1] != 3:
-            raise ValueError(f"write_euroc: landmarks_W must be (L, 3), got {landmarks_W.shape}")
-        lm_dir = mav0 / "sim_landmarks0"
-        lm_dir.mkdir(parents=True, exist_ok=True)
-        with (lm_dir / "data.csv").open("w", newline="") as handle:
-            handle.write(LANDMARK_HEADER + "\n")
-            handle.writelines(f"{i},{_fmt(p)}\n" for i, p in enumerate(landmarks_W))
-    return mav0

@@ -103,8 +103,16 @@ def run_estimator(
     imu_start = float(frame_t_imu[0]) - 1.0 if n_frames else None
     truth_at = (lambda t: _truth_estimate(ds, t)) if opts.estimator == "ground-truth" else None
     frames = (_frame(ds, k, opts, rng) for k in range(n_frames))
-    run = replay(est, ds.imu, frames, ds.calib.time_offset_s, imu_start_s=imu_start, truth_at=truth_at,
-                 progress=progress, n_frames=n_frames)
+    run = replay(
+        est,
+        ds.imu,
+        frames,
+        ds.calib.time_offset_s,
+        imu_start_s=imu_start,
+        truth_at=truth_at,
+        progress=progress,
+        n_frames=n_frames,
+    )
     health = [
         {
             "t_s": float(t),
@@ -115,9 +123,11 @@ def run_estimator(
             "reason": h.reason,
             "conditions": list(h.conditions),
         }
-        for t, h in zip(run.frame_t_imu_s, run.health)
+        for t, h in zip(run.frame_t_imu_s, run.health, strict=True)
     ]
-    estimates = [e for e, h in zip(run.estimates, run.health) if e is not None and not h.diverged]
+    estimates = [
+        e for e, h in zip(run.estimates, run.health, strict=True) if e is not None and not h.diverged
+    ]
     return estimates, run.ms_per_frame, health
 
 

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.data.euroc import write_euroc
+from viotb.envs.data.euroc_writer import write_euroc
 from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
@@ -49,7 +49,8 @@ def record_scenario(
         seed: Seed of every random component (same seed, byte-identical output).
         seconds: Duration (s); the scenario default when None.
         progress: Optional callback ``(done, total)`` called after each rendered frame.
-        severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.scenarios.failures``); None = default.
+        severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.scenarios.failures``); None =
+            default.
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
@@ -59,9 +60,9 @@ def record_scenario(
         ValueError: Unknown scenario, a scenario without a scripted trajectory, or a bad duration.
     """
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from viotb.envs.sim.landmarks import scene_landmarks  # noqa: PLC0415 (imports mujoco)
-    from viotb.envs.sim.render import OffscreenRenderer, camera_calibration  # noqa: PLC0415
-    from viotb.envs.sim.simulation import Simulation  # noqa: PLC0415
+    from viotb.envs.sim.landmarks import scene_landmarks  # (imports mujoco)
+    from viotb.envs.sim.render import OffscreenRenderer, camera_calibration
+    from viotb.envs.sim.simulation import Simulation
 
     wall_start = time.perf_counter()
     if severity is None:

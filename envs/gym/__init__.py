@@ -1,1 +1,1 @@
-"""gym wing: Gymnasium environments, one file per task on a shared base; ids registered in :mod:`viotb.envs`."""
+"""gym wing: Gymnasium environments, one file per task on a shared base (ids registered in viotb.envs)."""

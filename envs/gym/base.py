@@ -1,7 +1,7 @@
 """Gymnasium environments with VIO in the loop: a quadrotor policy that sees the estimate, not the truth.
 
-Three tasks share one base class (:class:`VioQuadEnv`); each env holds only its task logic (targets, a
-success test) on top of :class:`~viotb.envs.run.closed_loop.ClosedLoopSim`, which runs physics, IMU, camera and
+Three tasks share one base class (:class:`VioQuadEnv`); each env holds only its task logic (targets, a success
+test) on top of :class:`~viotb.envs.run.closed_loop.ClosedLoopSim`, which runs physics, IMU, camera and
 estimator in lockstep (cf. dm_control's physics/task split and Gymnasium ``envs/mujoco/hopper_v5.py``):
 
 * :class:`HoverEnv` (``viotb/Hover-v0``): hold a point against wind gusts.
@@ -83,10 +83,10 @@ class VioQuadEnv(gymnasium.Env):
     accelerometer, (K, 6)). Ground truth is only in ``info`` (``p_true_W_m``, ``v_true_W_m_s``,
     ``R_true_WB``, ``position_error_m``, ``estimate_error_m``).
 
-    ## Rewards
-    Sum of ``info["reward_components"]`` (also ``info["reward_<name>"]``), computed from the TRUE position:
-    ``tracking = w * exp(-|p - p_target| / tracking_scale_m)``, ``effort = -w |a - a_hover|^2``,
-    ``smoothness = -w |a_k - a_(k-1)|^2``, ``crash = -w`` on a failed episode (Waypoints adds ``waypoint = w`` per point reached).
+    ## Rewards Sum of ``info["reward_components"]`` (also ``info["reward_<name>"]``), computed from the TRUE
+    position: ``tracking = w * exp(-|p - p_target| / tracking_scale_m)``, ``effort = -w |a - a_hover|^2``,
+    ``smoothness = -w |a_k - a_(k-1)|^2``, ``crash = -w`` on a failed episode (Waypoints adds ``waypoint = w``
+    per point reached).
 
     ## Starting State
     ``start="air"`` (default): the body starts at ``start_p_W_m`` plus N(0, 0.1 m) per axis, with a velocity
@@ -99,18 +99,17 @@ class VioQuadEnv(gymnasium.Env):
     frame through the known launch pad). Domain randomization (IMU noise/bias scale, mass, wind) is drawn at
     reset from ``env.np_random``, which only ``reset(seed=...)`` seeds.
 
-    ## Episode End
-    Terminated on a crash (contact, tilt over 80 deg), leaving the arena (the scene's free space shrunk by
-    ``arena_margin_m``), being farther than ``max_target_distance_m`` from the target, or estimator
-    divergence (``health.diverged``) (Waypoints: or success after the last point, without penalty); ``info["termination_reason"]`` says which. Truncation:
-    only by the ``TimeLimit`` of the registration (``max_episode_steps``; override it in ``gymnasium.make``).
+    ## Episode End Terminated on a crash (contact, tilt over 80 deg), leaving the arena (the scene's free
+    space shrunk by ``arena_margin_m``), being farther than ``max_target_distance_m`` from the target, or
+    estimator divergence (``health.diverged``) (Waypoints: or success after the last point, without penalty);
+    ``info["termination_reason"]`` says which. Truncation: only by the ``TimeLimit`` of the registration
+    (``max_episode_steps``; override it in ``gymnasium.make``).
 
-    ## Arguments
-    ``render_mode`` (``None`` or ``"rgb_array"``: the ``chase`` camera, or ``render_camera="onboard"``;
-    ``env.unwrapped.render_camera(name)`` renders either), ``config`` (the task's config class: ``HoverEnvConfig``, ...), and any
-    field of it as a keyword (``action_type``, ``estimator``, ``frontend``, ``imu_preset``, ``camera_width``,
-    ``camera_height``, ``ctrl_dt``, ``randomization``, ``obs_mode``, ...). Unknown names or values raise
-    ``ValueError`` listing the allowed ones.
+    ## Arguments ``render_mode`` (``None`` or ``"rgb_array"``: the ``chase`` camera, or
+    ``render_camera="onboard"``; ``env.unwrapped.render_camera(name)`` renders either), ``config`` (the task's
+    config class: ``HoverEnvConfig``, ...), and any field of it as a keyword (``action_type``, ``estimator``,
+    ``frontend``, ``imu_preset``, ``camera_width``, ``camera_height``, ``ctrl_dt``, ``randomization``,
+    ``obs_mode``, ...). Unknown names or values raise ``ValueError`` listing the allowed ones.
 
     ## Version History
     - v0: initial version.

@@ -1,4 +1,4 @@
-"""Configuration of the Gymnasium tasks: one frozen dataclass per env, every tunable once, with its validation."""
+"""Configuration of the Gymnasium tasks: one frozen dataclass per env, every tunable once, validated."""
 
 from __future__ import annotations
 

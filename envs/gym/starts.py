@@ -1,5 +1,7 @@
-"""How a Gymnasium episode starts: the rig drawn from the randomization, the perturbed sensors and body, and
-either an airborne start from perturbed truth or a ground start with the takeoff of ``viotb fly``.
+"""How a Gymnasium episode starts: its rig, perturbed sensors and body, and an airborne or ground start.
+
+The rig is drawn from the randomization; an airborne start initializes the estimator from perturbed truth, a
+ground start flies the takeoff of ``viotb fly`` on the estimate.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ def rig_config(cfg: VioEnvConfig, rng: np.random.Generator) -> RigConfig:
         render_images=cfg.obs_mode == "dict",
     )
 
+
 def randomize_sensor_and_body(loop: ClosedLoopSim, cfg: VioEnvConfig, rng: np.random.Generator) -> None:
     """Scale the true IMU's noise/bias and the body's mass/inertia (estimator: nominal)."""
     dr = cfg.randomization
@@ -78,6 +81,7 @@ def randomize_sensor_and_body(loop: ClosedLoopSim, cfg: VioEnvConfig, rng: np.ra
         model.body_mass[body] *= mass_scale
         model.body_inertia[body] *= mass_scale
         mujoco.mj_setConst(model, loop.sim.data)
+
 
 def place_airborne(loop: ClosedLoopSim, cfg: VioEnvConfig, rng: np.random.Generator) -> None:
     """Put the body at a perturbed start pose and initialize the estimator from perturbed truth."""
@@ -116,7 +120,10 @@ def place_airborne(loop: ClosedLoopSim, cfg: VioEnvConfig, rng: np.random.Genera
         )
     )
 
-def ground_start(loop: ClosedLoopSim, cfg: VioEnvConfig, vehicle: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
+
+def ground_start(
+    loop: ClosedLoopSim, cfg: VioEnvConfig, vehicle: VehicleParams
+) -> tuple[np.ndarray, np.ndarray]:
     """Wait on the ground for the estimator, then take off to the start point on the estimate.
 
     The takeoff is :class:`~viotb.envs.run.mission.TakeoffSequence` (the one ``viotb fly`` flies), held

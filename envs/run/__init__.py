@@ -1,1 +1,1 @@
-"""run wing: the closed-loop scheduler (fly, Gymnasium, headset) and the open-loop replay (eval, monitor, failures)."""
+"""run wing: the closed-loop scheduler (fly, Gymnasium, headset) and the open-loop replay (eval, failures)."""

@@ -1,9 +1,9 @@
 """Lockstep closed-loop core: physics, IMU, camera and estimator advanced together in timestamp order.
 
-One :class:`ClosedLoopSim` owns a :class:`~viotb.envs.sim.simulation.Simulation`, the IMU and camera sensor models, an
-offscreen renderer (image front end) or the landmark projector (``sim`` fast mode), and an estimator chosen by
-name. Callers (the ``viotb fly`` runner and the Gymnasium envs) hold motor thrusts for one control period with
-:meth:`ClosedLoopSim.advance`; inside it:
+One :class:`ClosedLoopSim` owns a :class:`~viotb.envs.sim.simulation.Simulation`, the IMU and camera sensor
+models, an offscreen renderer (image front end) or the landmark projector (``sim`` fast mode), and an
+estimator chosen by name. Callers (the ``viotb fly`` runner and the Gymnasium envs) hold motor thrusts for one
+control period with :meth:`ClosedLoopSim.advance`; inside it:
 
 1. physics steps at the model's timestep (``<option timestep>``);
 2. every IMU period the noiseless gyro/accelerometer of the ``imu`` site go through the IMU model and the
@@ -103,7 +103,11 @@ class ClosedLoopSim:
                 raise ValueError(f"online calibration needs the msckf estimator, got {config.estimator!r}")
             params = params.with_online_calibration()
         self.estimator = make_estimator(
-            config.estimator, given, imu_params.noise, frontend=config.frontend, params=params,
+            config.estimator,
+            given,
+            imu_params.noise,
+            frontend=config.frontend,
+            params=params,
             window_params=window_params,
         )
         need_images = config.frontend == "klt" or config.render_images

@@ -26,7 +26,9 @@ class RunResult:
 
 
 def run_stream(
-    stream: Stream, params: MsckfParams | None = None, health: HealthParams | None = None,
+    stream: Stream,
+    params: MsckfParams | None = None,
+    health: HealthParams | None = None,
     estimator: str = "msckf",
 ) -> RunResult:
     """Run an estimator (sim front end) with a monitor over a stream and measure position error vs time.
@@ -45,8 +47,11 @@ def run_stream(
     if estimator == "msckf":
         est = MsckfEstimator(stream.calib_given, stream.noise, replace(prm, frontend="sim"))
     elif estimator == "window":
-        est = WindowEstimator(stream.calib_given, stream.noise,
-                              WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px))
+        est = WindowEstimator(
+            stream.calib_given,
+            stream.noise,
+            WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px),
+        )
     else:
         raise ValueError(f"run_stream: estimator must be 'msckf' or 'window', got {estimator!r}")
     monitor = HealthMonitor(health)
@@ -56,9 +61,14 @@ def run_stream(
     run = monitor_run(est, imu, frames, stream.time_offset_s, monitor)
     ok = [i for i, e in enumerate(run.estimates) if e is not None and np.all(np.isfinite(e.p_WB))]
     out = RunResult(np.zeros(0), np.zeros(0), run, stream)
-    m: dict = {"init_time_s": None, "ate_m": float("nan"), "final_err_m": float("nan"),
-               "scale_error_pct": float("nan"), "diverged": any(h.diverged for h in run.health),
-               "time_offset_est_s": None}
+    m: dict = {
+        "init_time_s": None,
+        "ate_m": float("nan"),
+        "final_err_m": float("nan"),
+        "scale_error_pct": float("nan"),
+        "diverged": any(h.diverged for h in run.health),
+        "time_offset_est_s": None,
+    }
     if len(ok) >= 3:
         t = np.array([run.estimates[i].t_s for i in ok])
         p_est = np.array([run.estimates[i].p_WB for i in ok])
@@ -67,8 +77,12 @@ def run_stream(
         al = align_umeyama(p_est, p_gt, "posyaw")
         err = np.linalg.norm(al.apply(p_est) - p_gt, axis=1)
         out.t_s, out.err_m = t, err
-        m.update(init_time_s=float(t[0]), ate_m=float(np.sqrt(np.mean(err**2))), final_err_m=float(err[-1]),
-                 scale_error_pct=float(scale_error_pct(p_est, p_gt)))
+        m.update(
+            init_time_s=float(t[0]),
+            ate_m=float(np.sqrt(np.mean(err**2))),
+            final_err_m=float(err[-1]),
+            scale_error_pct=float(scale_error_pct(p_est, p_gt)),
+        )
         if isinstance(est, MsckfEstimator) and est.state is not None and prm.estimate_time_offset:
             m["time_offset_est_s"] = float(est.state.time_offset_s)
     out.metrics = m

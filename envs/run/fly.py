@@ -1,10 +1,10 @@
 """Closed-loop flights: a quadrotor that initializes on the ground, takes off and flies on its own VIO.
 
 The runner (``viotb fly``) drives :class:`~viotb.envs.run.closed_loop.ClosedLoopSim` (the scheduler) with the
-phase machine of :class:`~viotb.envs.run.mission.TakeoffSequence`: on the ground until the estimator initializes
-from the IMU at rest, a climb to ``takeoff_altitude_m`` above the estimated start, an excitation manoeuvre when
-the estimator asks for one, then the scenario's mission relative to the hover point, in the estimator's frame.
-No truth is read by the control path after t = 0.
+phase machine of :class:`~viotb.envs.run.mission.TakeoffSequence`: on the ground until the estimator
+initializes from the IMU at rest, a climb to ``takeoff_altitude_m`` above the estimated start, an excitation
+manoeuvre when the estimator asks for one, then the scenario's mission relative to the hover point, in the
+estimator's frame. No truth is read by the control path after t = 0.
 
 If the estimator reports divergence, the runner stops the motors, records ``diverged`` with the reason and
 ends the flight instead of crashing the process. Metrics compare truth with the setpoints mapped into the

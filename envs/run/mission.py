@@ -1,8 +1,9 @@
-"""The takeoff-on-the-estimate sequence (shared by ``viotb fly`` and the Gymnasium ground start) and the missions.
+"""The takeoff-on-the-estimate sequence (used by ``viotb fly`` and the Gymnasium ground start), missions.
 
 :class:`TakeoffSequence` is a small phase machine on the estimate, never on the truth:
 
-1. ``ground``: motors off until the estimator reports its first estimate (it initializes from the IMU at rest);
+1. ``ground``: motors off until the estimator reports its first estimate (it initializes from the IMU at
+   rest);
 2. ``takeoff``: a smooth climb (:class:`~viotb.controllers.setpoints.Takeoff`) from the estimated start to the
    hover point chosen from that first estimate;
 3. ``excite``: a short excitation manoeuvre, only when allowed and the estimator asks for one
@@ -129,8 +130,9 @@ def mission_setpoints(kind: str, hover_W: np.ndarray, yaw: float) -> Setpoint:
         yaws = np.full(len(square), yaw)
         return Sequence([Waypoints(np.array(square), yaws_rad=yaws, speed_m_s=0.6), HoverPoint(hover_W, yaw)])
     if kind == "line":
-        line = StraightLine(hover_W, rotz(yaw) @ np.array([1.0, 0.0, 0.0]), length_m=4.5, speed_m_s=0.8,
-                            yaw_rad=yaw)
+        line = StraightLine(
+            hover_W, rotz(yaw) @ np.array([1.0, 0.0, 0.0]), length_m=4.5, speed_m_s=0.8, yaw_rad=yaw
+        )
         return Sequence([line, HoverPoint(line.sample(line.duration_s).p_W, yaw)])
     if kind == "figure8":
         return FigureEight(

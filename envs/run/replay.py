@@ -1,9 +1,9 @@
 """The one open-loop replay: IMU samples and camera frames fed to an estimator in timestamp order.
 
 Used by ``viotb eval`` (:mod:`viotb.envs.data.evaluate`), by the failure runner
-(:mod:`viotb.envs.run.failure_runner`) and by the tests that watch an estimator with the health monitor. Frames
-are stamped on the camera clock; they are interleaved with the IMU on the IMU clock,
-``t_imu = t_cam + time_offset_s``: every IMU sample up to a frame's IMU time is fed before the frame.
+(:mod:`viotb.envs.run.failure_runner`) and by the tests that watch an estimator with the health monitor.
+Frames are stamped on the camera clock; they are interleaved with the IMU on the IMU clock, ``t_imu = t_cam +
+time_offset_s``: every IMU sample up to a frame's IMU time is fed before the frame.
 """
 
 from __future__ import annotations

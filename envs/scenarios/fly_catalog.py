@@ -8,7 +8,7 @@ from viotb.envs.sim.rig import RigConfig, WindParams
 
 
 def fly_scenarios() -> dict[str, FlyScenario]:
-    """The nominal closed-loop scenarios by name (the failure ones are in :mod:`~viotb.envs.scenarios.failures`)."""
+    """The nominal closed-loop scenarios by name (failures: :mod:`~viotb.envs.scenarios.failures`)."""
     blackout = CameraModelParams(blackout_intervals_s=((12.0, 14.0),))
     items = [
         FlyScenario("fly-hover", "take off and hold a point in the textured room", default_seconds=30.0),

@@ -1,5 +1,7 @@
-"""The open-loop scenario library (``viotb record NAME``): motions of the quadrotor and the headset, and their
-variants in the lesson's hard conditions (blank wall, dark room, blackout, consumer IMU, clock offset).
+"""The open-loop scenario library (``viotb record NAME``): quadrotor and headset motions, hard variants.
+
+The variants put the motions in the lesson's hard conditions (blank wall, dark room, blackout, consumer IMU,
+clock offset).
 """
 
 from __future__ import annotations
@@ -71,7 +73,7 @@ def record_scenarios() -> list[Scenario]:
             vehicle="headset",
         ),
         _record("head-fast-turns", "Headset: fast head turns up to ~350 deg/s.", 20.0, vehicle="headset"),
-        # Failure-mode variants of the lesson (feature poverty, darkness, camera blackout, consumer IMU, time offset).
+        # The lesson's failure-mode variants (feature poverty, darkness, blackout, consumer IMU, time offset).
         _record(
             "hover-blank-wall",
             "Hover in front of a blank wall (feature poverty).",

@@ -1,4 +1,4 @@
-"""The one scenario registry: every open-loop, closed-loop and failure scenario is registered here, and only here.
+"""The one scenario registry: every open-loop, closed-loop and failure scenario is registered here only.
 
 :func:`default_registry` builds it once, explicitly, from the libraries of this wing
 (:mod:`~viotb.envs.scenarios.record_catalog`, :mod:`~viotb.envs.scenarios.fly_catalog`,
@@ -32,8 +32,9 @@ __all__ = [
 
 
 class ScenarioRegistry:
-    """Named scenarios: every one as a :class:`Scenario` (the listing), closed-loop ones also as a
-    :class:`FlyScenario` (what ``viotb fly`` runs).
+    """Named scenarios: each as a :class:`Scenario` (the listing), closed-loop ones also as a FlyScenario.
+
+    The :class:`FlyScenario` is what ``viotb fly`` runs.
     """
 
     def __init__(self) -> None:

@@ -1,8 +1,8 @@
-"""What a scenario is: the open-loop :class:`Scenario` (``viotb record``) and the closed-loop :class:`FlyScenario`.
+"""What a scenario is: the open-loop :class:`Scenario` and the closed-loop :class:`FlyScenario`.
 
-``kind`` is ``"record"`` for open-loop scenarios (the vehicle is driven kinematically along its trajectory) and
-``"fly"`` for closed-loop ones; every closed-loop scenario is listed in the registry as a ``fly`` :class:`Scenario`
-too (:func:`listing`), so that ``viotb scenarios`` shows one table.
+``kind`` is ``"record"`` for open-loop scenarios (the vehicle is driven kinematically along its trajectory)
+and ``"fly"`` for closed-loop ones; every closed-loop scenario is listed in the registry as a ``fly``
+:class:`Scenario` too (:func:`listing`), so that ``viotb scenarios`` shows one table.
 """
 
 from __future__ import annotations

@@ -1,9 +1,10 @@
 """Scenarios as fast in-memory sensor streams: scripted truth -> IMU model -> projected scene landmarks.
 
-No rendering: :func:`synthesize_stream` samples a motion of the library at the IMU rate, passes it through the IMU
-model (with the configured faults), projects the scene's landmarks at each exposure and stamps the frames on the
-camera clock. The failure catalog and the Monte Carlos run estimators on these streams (``run.failure_runner``).
-Streams start with ``still_s`` seconds at rest so that a static initializer can start them.
+No rendering: :func:`synthesize_stream` samples a motion of the library at the IMU rate, passes it through the
+IMU model (with the configured faults), projects the scene's landmarks at each exposure and stamps the frames
+on the camera clock. The failure catalog and the Monte Carlos run estimators on these streams
+(``run.failure_runner``). Streams start with ``still_s`` seconds at rest so that a static initializer can
+start them.
 """
 
 from __future__ import annotations
@@ -116,8 +117,9 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
     from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
 
     imu_seq, lm_seq, px_seq = np.random.SeedSequence(seed).spawn(3)
-    traj = _Delayed(TRAJECTORY_FACTORIES[cfg.motion](MotionParams(cfg.seconds, speed_scale=cfg.speed_scale)),
-                    cfg.still_s)
+    traj = _Delayed(
+        TRAJECTORY_FACTORIES[cfg.motion](MotionParams(cfg.seconds, speed_scale=cfg.speed_scale)), cfg.still_s
+    )
     total_s = cfg.seconds + cfg.still_s
     params = imu_preset(cfg.imu_preset)
     t_imu = np.arange(int(np.floor(total_s * params.rate_hz + 1e-9)) + 1) / params.rate_hz
@@ -128,8 +130,9 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
     )
 
     model = load_model("quadrotor", cfg.scene)
-    calib = camera_calibration(model, ONBOARD_CAMERA, VEHICLE_BODIES["quadrotor"], 320, 240,
-                               cfg.time_offset_s, cfg.camera_rate_hz)
+    calib = camera_calibration(
+        model, ONBOARD_CAMERA, VEHICLE_BODIES["quadrotor"], 320, 240, cfg.time_offset_s, cfg.camera_rate_hz
+    )
     landmarks = scene_landmarks(model, np.random.default_rng(lm_seq), cfg.landmark_count)
     rng = np.random.default_rng(px_seq)
     t_exp = np.arange(1, int(np.floor(total_s * cfg.camera_rate_hz))) / cfg.camera_rate_hz
@@ -140,24 +143,33 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
         R_WB, p_WB = cams.R_WB[k], cams.p_WB[k]
         blank = cfg.blackout_s is not None and cfg.blackout_s[0] <= t < cfg.blackout_s[1]
         obs = project_landmarks(
-            landmarks[:0] if blank else landmarks, R_WB @ calib.R_BC, p_WB + R_WB @ calib.p_BC, calib.camera,
-            rng, cfg.pixel_sigma_px,
+            landmarks[:0] if blank else landmarks,
+            R_WB @ calib.R_BC,
+            p_WB + R_WB @ calib.p_BC,
+            calib.camera,
+            rng,
+            cfg.pixel_sigma_px,
         )
         frames.append(CameraFrame(t_s=float(t - cfg.time_offset_s), features=obs))
     given = cfg.faults.told_calibration(calib)
-    gt = TrajectoryArrays(t_imu, truth.p_WB, np.array([rotmat_to_quat_wxyz(R) for R in truth.R_WB]),
-                          truth.v_WB)
+    gt = TrajectoryArrays(
+        t_imu, truth.p_WB, np.array([rotmat_to_quat_wxyz(R) for R in truth.R_WB]), truth.v_WB
+    )
     init = None
     if cfg.start_in_flight_s is not None:
         k = int(np.searchsorted(t_imu, cfg.start_in_flight_s))
         if k >= len(t_imu) - 1:
-            raise ValueError(f"StreamConfig.start_in_flight_s={cfg.start_in_flight_s} is beyond the stream "
-                             f"({total_s} s)")
+            raise ValueError(
+                f"StreamConfig.start_in_flight_s={cfg.start_in_flight_s} is beyond the stream ({total_s} s)"
+            )
         sigma_v = max(abs(cfg.initial_scale_error) * float(np.linalg.norm(truth.v_WB[k])), 0.02)
         init = InitResult(
-            t_s=float(t_imu[k]), R_WB=truth.R_WB[k], p_WB=truth.p_WB[k],
+            t_s=float(t_imu[k]),
+            R_WB=truth.R_WB[k],
+            p_WB=truth.p_WB[k],
             v_WB=truth.v_WB[k] * (1.0 + cfg.initial_scale_error),
-            gyro_bias_rad_s=bias_g[k] + cfg.faults.extra_gyro_bias_rad_s, accel_bias_m_s2=bias_a[k],
+            gyro_bias_rad_s=bias_g[k] + cfg.faults.extra_gyro_bias_rad_s,
+            accel_bias_m_s2=bias_a[k],
             method="in-flight",
             cov_diag=np.repeat([1e-4**2, 1e-3**2, sigma_v**2, 1e-3**2, 0.02**2], 3),
         )

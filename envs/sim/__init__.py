@@ -1,1 +1,1 @@
-"""sim wing: the simulated world and its sensors (MuJoCo wrapper, renderer, IMU and camera timing, landmarks, faults)."""
+"""sim wing: the simulated world and its sensors (MuJoCo, renderer, IMU, camera timing, landmarks, faults)."""

@@ -1,8 +1,8 @@
 """Sensor and calibration faults a scenario injects: what the estimator is fed or told, never the truth.
 
-One :class:`SensorFaults` value travels with an open-loop recording (:class:`viotb.envs.scenarios.registry.Scenario`,
-written into the dataset's readings and calibration files), a closed-loop rig
-(:class:`viotb.envs.run.closed_loop.RigConfig`) and an in-memory failure stream
+One :class:`SensorFaults` value travels with an open-loop recording
+(:class:`viotb.envs.scenarios.registry.Scenario`, written into the dataset's readings and calibration files),
+a closed-loop rig (:class:`viotb.envs.run.closed_loop.RigConfig`) and an in-memory failure stream
 (:class:`viotb.envs.scenarios.failures.StreamConfig`), so a failure mode means the same thing in all three.
 """
 

@@ -37,7 +37,7 @@ GRAY_WEIGHTS = np.array([0.299, 0.587, 0.114])
 def _egl_available() -> bool:
     """True when an EGL context can be created (probes by making and freeing one)."""
     try:
-        from mujoco.egl import GLContext  # noqa: PLC0415 (import selects the backend)
+        from mujoco.egl import GLContext  # (import selects the backend)
 
         ctx = GLContext(16, 16)
         ctx.make_current()
@@ -52,7 +52,7 @@ def _osmesa_available() -> bool:
     if importlib.util.find_spec("OpenGL") is None:
         return False
     try:
-        from mujoco.osmesa import GLContext  # noqa: PLC0415
+        from mujoco.osmesa import GLContext
 
         ctx = GLContext(16, 16)
         ctx.make_current()
@@ -69,15 +69,15 @@ def _bind_mujoco_context(backend: str) -> None:
     fails headless). When mujoco was imported before the backend was chosen, rebind it here; the renderer
     reads ``mujoco.rendering.classic.gl_context.GLContext`` each time it creates a context.
     """
-    import sys  # noqa: PLC0415
+    import sys
 
     module = sys.modules.get("mujoco.rendering.classic.gl_context")
     if module is None:
         return
     if backend == "egl":
-        from mujoco.egl import GLContext  # noqa: PLC0415
+        from mujoco.egl import GLContext
     elif backend == "osmesa":
-        from mujoco.osmesa import GLContext  # noqa: PLC0415
+        from mujoco.osmesa import GLContext
     else:
         return
     module.GLContext = GLContext
@@ -126,7 +126,7 @@ def select_gl_backend(
 
 def _camera_id(model, camera_name: str) -> int:
     """Id of a named camera, with a clear error listing the model's cameras."""
-    import mujoco  # noqa: PLC0415 (after select_gl_backend)
+    import mujoco  # (after select_gl_backend)
 
     cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera_name)
     if cam_id < 0:
@@ -156,7 +156,7 @@ def camera_extrinsics(model, camera_name: str, body_name: str) -> tuple[np.ndarr
     Raises:
         ValueError: Unknown camera or body, or the camera is not attached to that body.
     """
-    import mujoco  # noqa: PLC0415
+    import mujoco
 
     cam_id = _camera_id(model, camera_name)
     body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body_name)
@@ -232,10 +232,10 @@ class OffscreenRenderer:
         rng: np.random.Generator | None = None,
     ) -> None:
         """Create the GL context and the renderer (selects the GL backend first)."""
-        from viotb.models.constants import ONBOARD_CAMERA  # noqa: PLC0415
+        from viotb.models.constants import ONBOARD_CAMERA
 
         select_gl_backend()
-        import mujoco  # noqa: PLC0415
+        import mujoco
 
         camera = ONBOARD_CAMERA if camera is None else camera
         if width > model.vis.global_.offwidth or height > model.vis.global_.offheight:

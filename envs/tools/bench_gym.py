@@ -1,11 +1,11 @@
 """Throughput of the Gymnasium envs: env steps per second and real-time factor, printed as JSON.
 
-``python -m viotb.envs.tools.bench_gym [--steps N] [--num-envs K] [--repeats R]`` measures ``viotb/Hover-v0`` with
-the ``position`` action (the SE(3) controller holds the point, so episodes do not end early) for three
+``python -m viotb.envs.tools.bench_gym [--steps N] [--num-envs K] [--repeats R]`` measures ``viotb/Hover-v0``
+with the ``position`` action (the SE(3) controller holds the point, so episodes do not end early) for three
 estimator set-ups (``ground-truth``, ``msckf`` + ``sim`` features, ``msckf`` + ``klt`` on rendered images),
-each as a single env and as a ``SyncVectorEnv`` of K copies. The real-time factor is
-``env steps/s * ctrl_dt`` (simulated seconds per wall second, summed over the vector's copies). Reset time is
-excluded; the median over repeats is reported (DESIGN.md: about one run in ten lands in a slower mode).
+each as a single env and as a ``SyncVectorEnv`` of K copies. The real-time factor is ``env steps/s * ctrl_dt``
+(simulated seconds per wall second, summed over the vector's copies). Reset time is excluded; the median over
+repeats is reported (DESIGN.md: about one run in ten lands in a slower mode).
 """
 
 from __future__ import annotations

@@ -94,8 +94,9 @@ def record(
         _fail(f"--seconds must be positive, got {seconds}")
     try:
         with _progress(f"record {scenario}", not as_json) as progress:
-            result = record_scenario(scenario, out, seed=seed, seconds=seconds, progress=progress,
-                                     severity=severity)
+            result = record_scenario(
+                scenario, out, seed=seed, seconds=seconds, progress=progress, severity=severity
+            )
     except (ValueError, FileNotFoundError) as exc:
         _fail(str(exc))
     _emit(result, as_json, f"recorded {scenario} -> {out}")
@@ -143,8 +144,16 @@ def fly(
         _fail(f"--seconds must be positive, got {seconds}")
     try:
         with _progress(f"fly {scenario}", not as_json) as progress:
-            result, log = run_fly(scenario, estimator, seconds, seed, frontend, progress,
-                                  online_calibration=calibrate or None, severity=severity)
+            result, log = run_fly(
+                scenario,
+                estimator,
+                seconds,
+                seed,
+                frontend,
+                progress,
+                online_calibration=calibrate or None,
+                severity=severity,
+            )
     except ValueError as exc:
         _fail(str(exc))
     if out is not None:

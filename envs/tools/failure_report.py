@@ -1,4 +1,4 @@
-"""``viotb failures``: runs each failure of the catalog and its fix, plots error vs time, reports the monitor."""
+"""``viotb failures``: each failure of the catalog and its fix, error-vs-time plots, what the monitor said."""
 
 from __future__ import annotations
 

@@ -1,10 +1,10 @@
 """Drift regression suite (``viotb regress``): fixed seeded runs compared with a committed baseline.
 
-Short set (default): in-memory open-loop streams of :mod:`viotb.envs.scenarios.failures` (hover, circle, line; no
-rendering) evaluated with the MSCKF and the simulated front end, plus one closed-loop ``fly-hover`` with the
-simulated front end. ``full`` adds a fast circle and the 60 s long loop (simulated features), and the image
-path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``) and a 20 s
-closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``), and the circle with the sliding-window
+Short set (default): in-memory open-loop streams of :mod:`viotb.envs.scenarios.failures` (hover, circle, line;
+no rendering) evaluated with the MSCKF and the simulated front end, plus one closed-loop ``fly-hover`` with
+the simulated front end. ``full`` adds a fast circle and the 60 s long loop (simulated features), and the
+image path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``) and a 20
+s closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``), and the circle with the sliding-window
 optimizer (``circle-sim-window``).
 
 The baseline holds the full set; a short run is compared on the short set's cases only.
@@ -116,10 +116,10 @@ def _stream_case(
 
 def _recording_case(seed: int, ref_ms: float) -> dict:
     """``figure8`` rendered for 12 s, replayed through the MSCKF with the KLT front end."""
-    import tempfile  # noqa: PLC0415
+    import tempfile
 
-    from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset  # noqa: PLC0415
-    from viotb.envs.data.record import record_scenario  # noqa: PLC0415
+    from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
+    from viotb.envs.data.record import record_scenario
 
     with tempfile.TemporaryDirectory(prefix="viotb-regress-") as tmp:
         record_scenario("figure8", tmp, seed=seed, seconds=12.0)
@@ -136,7 +136,7 @@ def _recording_case(seed: int, ref_ms: float) -> dict:
 
 
 def _fly_case(seed: int, ref_ms: float, frontend: str = "sim", seconds: float = 15.0) -> dict:
-    from viotb.envs.run.fly import fly  # noqa: PLC0415
+    from viotb.envs.run.fly import fly
 
     t0 = time.perf_counter()
     # 15 s: ground init, takeoff and the excitation manoeuvre the filter asks for leave ~4 s of hover.
@@ -152,7 +152,10 @@ def _fly_case(seed: int, ref_ms: float, frontend: str = "sim", seconds: float = 
 
 
 def run_suite(
-    full: bool = False, seed: int = 0, params: MsckfParams | None = None, fly_case: bool = True,
+    full: bool = False,
+    seed: int = 0,
+    params: MsckfParams | None = None,
+    fly_case: bool = True,
     only: tuple[str, ...] | None = None,
 ) -> dict:
     """Run the fixed cases; returns ``{"reference_ms", "cases": {name: metrics}}``.
@@ -215,12 +218,28 @@ def compare(result: dict, baseline: dict, cases: tuple[str, ...] | None = None) 
             continue
         cur = result["cases"].get(case)
         if cur is None:
-            rows.append({"case": case, "metric": "(missing)", "value": None, "baseline": None, "limit": None,
-                         "ok": False})
+            rows.append(
+                {
+                    "case": case,
+                    "metric": "(missing)",
+                    "value": None,
+                    "baseline": None,
+                    "limit": None,
+                    "ok": False,
+                }
+            )
             continue
         if cur.get("diverged") and not base.get("diverged"):
-            rows.append({"case": case, "metric": "diverged", "value": True, "baseline": False, "limit": False,
-                         "ok": False})
+            rows.append(
+                {
+                    "case": case,
+                    "metric": "diverged",
+                    "value": True,
+                    "baseline": False,
+                    "limit": False,
+                    "ok": False,
+                }
+            )
         for metric, b in base.items():
             if metric == "diverged" or metric not in tol or metric not in cur:
                 continue
@@ -248,7 +267,9 @@ def write_baseline(path: Path | str, result: dict, tolerances: dict | None = Non
 
 
 def regress(
-    baseline: Path | str = DEFAULT_BASELINE, update: bool = False, full: bool = False,
+    baseline: Path | str = DEFAULT_BASELINE,
+    update: bool = False,
+    full: bool = False,
     params: MsckfParams | None = None,
 ) -> tuple[bool, list[dict], dict]:
     """Run the suite and compare (or rewrite the baseline when ``update``).
