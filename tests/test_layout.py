@@ -1,4 +1,4 @@
-"""Tests of the room rules of DESIGN.md: who imports what, no import cycle, small files that say what they own.
+"""Tests of the room rules of DESIGN.md: who imports what, no import cycle, small files saying what they own.
 
 Imports are read from the source with :mod:`ast`, function-level imports included, so an import hidden inside
 a function still counts (it is still a dependency, only a late one).
