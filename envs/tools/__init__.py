@@ -1,0 +1,1 @@
+"""Tools that drive many runs of the testbed: sweeps (and later bench, regress, reports)."""
