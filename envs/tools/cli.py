@@ -16,6 +16,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from viotb.envs.tools.sweep.cli import register as register_sweep
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="vio-testbed: VIO in the loop.")
 _err = Console(stderr=True)
@@ -282,6 +283,9 @@ def failures(
         ate = (f"{r['failing']['ate_m']:.3f} m", f"{r['fixed']['ate_m']:.3f} m")
         table.add_row(r["name"], said, r["fix"], *ate, ", ".join(r["fixed_conditions"]) or "nothing")
     Console().print(table)
+
+
+register_sweep(app)  # viotb sweep, viotb sweep-report
 
 
 def main() -> None:
