@@ -18,7 +18,9 @@ from viotb.envs.run.replay import replay
 from viotb.vio.factory import make_estimator
 from viotb.vio.lie import quat_wxyz_to_rotmat, rotmat_to_quat_wxyz
 from viotb.vio.metrics import evaluate_trajectory
+from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.types import CameraFrame, StateEstimate, TrajectoryArrays
+from viotb.vio.window import WindowParams
 
 ProgressFn = Callable[[float, float], None]
 
@@ -34,6 +36,8 @@ class EvalOptions:
         seed: Seed of the pixel noise in the ``sim`` front end.
         sim_pixel_sigma_px: Pixel noise (px) of the ``sim`` front end.
         max_frames: Stop after this many frames (None = all).
+        msckf: MSCKF settings (None: the defaults).
+        window: Window-optimizer settings (None: the defaults).
     """
 
     estimator: str = "msckf"
@@ -41,6 +45,8 @@ class EvalOptions:
     seed: int = 0
     sim_pixel_sigma_px: float = 0.5
     max_frames: int | None = None
+    msckf: MsckfParams | None = None
+    window: WindowParams | None = None
 
 
 def _interpolate_pose(gt: TrajectoryArrays, t_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -95,7 +101,14 @@ def run_estimator(
         (ms), and per-frame health records (dicts with t_s, tracked_features, updated_features,
         chi2_rejections, diverged, reason, conditions).
     """
-    est = make_estimator(opts.estimator, ds.calib, ds.imu_noise, frontend=opts.frontend)
+    est = make_estimator(
+        opts.estimator,
+        ds.calib,
+        ds.imu_noise,
+        frontend=opts.frontend,
+        params=opts.msckf,
+        window_params=opts.window,
+    )
     rng = np.random.default_rng(opts.seed)
     n_frames = len(ds.cam_t_s) if opts.max_frames is None else min(opts.max_frames, len(ds.cam_t_s))
     frame_t_imu = ds.cam_t_s[:n_frames] + ds.calib.time_offset_s

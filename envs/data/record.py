@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ from viotb.envs.data.euroc_writer import write_euroc
 from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
-from viotb.envs.sim.imu_model import ImuModel, imu_preset
+from viotb.envs.sim.imu_model import ImuModel
 from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
@@ -40,6 +41,7 @@ def record_scenario(
     seconds: float | None = None,
     progress: Callable[[float, float], None] | None = None,
     severity: float | None = None,
+    imu_preset: str | None = None,
 ) -> dict:
     """Simulate scenario ``name`` open loop and write a EuRoC ASL folder ``out_dir/mav0``.
 
@@ -51,6 +53,7 @@ def record_scenario(
         progress: Optional callback ``(done, total)`` called after each rendered frame.
         severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.scenarios.failures``); None =
             default.
+        imu_preset: Record with this IMU preset instead of the scenario's (None: the scenario's).
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
@@ -69,6 +72,8 @@ def record_scenario(
         scenario = get_scenario(name)
     else:
         scenario = failure_record_scenario(name, severity)
+    if imu_preset is not None:
+        scenario = replace(scenario, imu_preset=imu_preset)
     if seconds is not None and not (np.isfinite(seconds) and seconds > 0.0):
         raise ValueError(f"record_scenario: seconds must be positive, got {seconds}")
     duration_s = float(scenario.default_seconds if seconds is None else seconds)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
@@ -94,10 +94,11 @@ class ClosedLoopSim:
         # The fast mode knows its own pixel noise (as the open-loop streams do): a filter told 1 px while the
         # simulated features carry 0.5 px has a nominal NIS per dof of 0.25, and the monitor's time-sync test
         # (NIS > 1.25 while moving) never fires.
-        params, window_params = MsckfParams(), WindowParams()
+        params = config.msckf if config.msckf is not None else MsckfParams()
+        window_params = config.window if config.window is not None else WindowParams()
         if config.frontend == "sim":
-            params = MsckfParams(pixel_sigma_px=config.sim_pixel_sigma_px)
-            window_params = WindowParams(pixel_sigma_px=config.sim_pixel_sigma_px)
+            params = replace(params, pixel_sigma_px=config.sim_pixel_sigma_px)
+            window_params = replace(window_params, pixel_sigma_px=config.sim_pixel_sigma_px)
         if config.online_calibration:
             if config.estimator != "msckf":
                 raise ValueError(f"online calibration needs the msckf estimator, got {config.estimator!r}")

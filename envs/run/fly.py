@@ -24,6 +24,7 @@ from viotb.envs.run.closed_loop import ClosedLoopSim
 from viotb.envs.run.mission import TakeoffSequence
 from viotb.envs.scenarios.failures import failure_fly_scenario
 from viotb.envs.scenarios.registry import get_fly_scenario
+from viotb.envs.sim.rig import RigConfig
 from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
@@ -73,6 +74,7 @@ def fly(
     gains: SE3Gains | None = None,
     online_calibration: bool | None = None,
     severity: float | None = None,
+    edit_rig: Callable[[RigConfig], RigConfig] | None = None,
 ) -> tuple[dict, FlightLog]:
     """Fly a closed-loop scenario.
 
@@ -89,6 +91,7 @@ def fly(
             scenario's rig when not None).
         severity: For a ``fly-fail-*`` scenario with a knob, its severity
             (``viotb.envs.scenarios.failures.failure_fly_scenario``); None = the registered default.
+        edit_rig: Applied last to the run's rig (estimator settings, sensors, wind...; sweeps use it).
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -107,6 +110,8 @@ def fly(
     rig = replace(sc.rig, estimator=estimator, frontend=frontend)
     if online_calibration is not None:
         rig = replace(rig, online_calibration=bool(online_calibration))
+    if edit_rig is not None:
+        rig = edit_rig(rig)
     loop = ClosedLoopSim(rig, seed=seed)
     controller = SE3Controller(vehicle_params_from_model(loop.sim.model), gains or SE3Gains())
     log = FlightLog()

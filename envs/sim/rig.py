@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 from viotb.envs.sim.camera_timing import CameraModelParams
 from viotb.envs.sim.faults import SensorFaults
+from viotb.vio.msckf_params import MsckfParams
+from viotb.vio.window import WindowParams
 
 
 @dataclass(frozen=True)
@@ -44,6 +46,8 @@ class RigConfig:
             told and fed, not the truth.
         online_calibration: Estimate the time offset and the extrinsics online (MSCKF,
             :meth:`~viotb.vio.msckf.MsckfParams.with_online_calibration`).
+        msckf: MSCKF settings (None: the defaults); the ``sim`` front end still sets its pixel noise.
+        window: Window-optimizer settings (None: the defaults); likewise.
     """
 
     scene: str = "textured_room"
@@ -59,3 +63,5 @@ class RigConfig:
     imu_fault_at_s: float | None = None
     faults: SensorFaults = field(default_factory=SensorFaults)
     online_calibration: bool = False
+    msckf: MsckfParams | None = None
+    window: WindowParams | None = None

@@ -57,8 +57,8 @@ def sweep(
     ),
 ) -> None:
     """Monte-Carlo sweep as Ray tasks: one Parquet row per run, resumable (only missing runs are computed)."""
-    from viotb.envs.tools.sweep.engine import SweepInterrupted, run_sweep  # noqa: PLC0415
-    from viotb.envs.tools.sweep.spec import SpecError, load_spec  # noqa: PLC0415
+    from viotb.envs.tools.sweep.engine import SweepInterrupted, run_sweep
+    from viotb.envs.tools.sweep.spec import SpecError, load_spec
 
     err = Console(stderr=True)
     try:
@@ -103,7 +103,7 @@ def sweep_report(
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
     """Plots (ATE, drift, NEES against its chi-square band, timing) and a percentile table of a sweep."""
-    from viotb.envs.tools.sweep.report import sweep_report as make_report  # noqa: PLC0415
+    from viotb.envs.tools.sweep.report import sweep_report as make_report
 
     err = Console(stderr=True)
     try:

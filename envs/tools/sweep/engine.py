@@ -224,7 +224,7 @@ class _State:
 
 def _run_on_ray(todo: list[RunConfig], workers, address, limit_s, meta: dict, state: _State) -> None:
     """Submit ``todo`` as tasks (at most ``workers`` in flight) and collect the rows."""
-    import ray  # noqa: PLC0415
+    import ray
 
     started_here = not ray.is_initialized()
     if started_here:
@@ -300,7 +300,7 @@ def _row(cfg: RunConfig, status: str, error: str | None, metrics: dict, wall_s: 
 
 def _meta() -> dict:
     """Package version and git commit of the driver's checkout (None outside a git checkout)."""
-    import viotb  # noqa: PLC0415
+    import viotb
 
     commit = None
     try:
@@ -335,7 +335,7 @@ def _prepare_out_dir(out: Path, spec: SweepSpec, overwrite: bool) -> Path:
         elif not (out / MARKER).is_file():
             raise FileExistsError(f"--out {out} is not empty and not a sweep folder (use --overwrite)")
     (out / SHARDS).mkdir(parents=True, exist_ok=True)
-    import yaml  # noqa: PLC0415
+    import yaml
 
     now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     marker = json.loads((out / MARKER).read_text()) if (out / MARKER).is_file() else {"created_utc": now}
@@ -378,8 +378,8 @@ def write_results(out: Path, runs: list[RunConfig], rows: dict[str, dict]) -> Pa
     Columns: :data:`META_COLUMNS`, then ``config/*``, the metrics (sorted), and :data:`RUN_COLUMNS`. A
     column whose values Arrow cannot hold in one type is stored as JSON strings.
     """
-    import pyarrow as pa  # noqa: PLC0415
-    import pyarrow.parquet as pq  # noqa: PLC0415
+    import pyarrow as pa
+    import pyarrow.parquet as pq
 
     mine = [rows[c.run_id] for c in runs if c.run_id in rows]
     keys = {k for r in mine for k in r}

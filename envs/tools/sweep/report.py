@@ -49,10 +49,10 @@ def sweep_report(sweep_dir: Path | str, report_dir: Path | str | None = None) ->
     Raises:
         FileNotFoundError: No ``results.parquet`` in ``sweep_dir``.
     """
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
 
     matplotlib.use("Agg")
-    import pandas as pd  # noqa: PLC0415
+    import pandas as pd
 
     src = Path(sweep_dir) / "results.parquet"
     if not src.is_file():
@@ -99,8 +99,8 @@ def nees_band(nees_per_run) -> dict:
     Returns:
         ``{"n", "anees", "low", "high", "inside"}`` (None where there is no finite value).
     """
-    import numpy as np  # noqa: PLC0415
-    from scipy.stats import chi2  # noqa: PLC0415
+    import numpy as np
+    from scipy.stats import chi2
 
     x = np.asarray(nees_per_run, dtype=float)
     x = x[np.isfinite(x)]
@@ -124,7 +124,7 @@ def _labels(df) -> list[str]:
 
 
 def _stats(series) -> dict:
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
     x = series.to_numpy(dtype=float)
     x = x[np.isfinite(x)]
@@ -136,8 +136,8 @@ def _stats(series) -> dict:
 
 
 def _plots(ok, metrics: list[str], configs: list[dict], out: Path) -> list[Path]:
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-    import numpy as np  # noqa: PLC0415
+    import matplotlib.pyplot as plt
+    import numpy as np
 
     labels = [c["label"] for c in configs]
     written = []
@@ -206,7 +206,7 @@ def _plots(ok, metrics: list[str], configs: list[dict], out: Path) -> list[Path]
 
 
 def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
 
     fig.savefig(path, dpi=110)
     plt.close(fig)

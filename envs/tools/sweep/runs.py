@@ -1,9 +1,8 @@
 """One run of a sweep: :class:`RunConfig` and :func:`run_config` (in this process, no Ray).
 
-This is the only module of the sweep that imports the testbed's run functions (``viotb.envs.record``,
-``viotb.envs.evaluate``, ``viotb.envs.fly``, ``viotb.envs.closed_loop``, ``viotb.envs.scenarios``): when
-they move, update the imports here and nowhere else. They are imported inside the functions, so that the
-CLI and the spec parser stay light.
+This is the only module of the sweep that imports the testbed's run functions (``viotb.envs.data.record``,
+``viotb.envs.data.evaluate``, ``viotb.envs.run.fly``) and registries. The CLI imports it only when a sweep
+runs, so ``viotb --help`` stays light.
 
 Modes:
 
@@ -12,13 +11,10 @@ Modes:
   ``record/``.
 - ``fly``: :func:`fly` (``viotb fly``); the metrics are its JSON.
 
-Parameter overrides (``msckf.*``, ``window.*``, ``rig.*`` and the ``imu`` axis): the run functions take no
-estimator or rig settings today, so for the duration of one run the factory each of them calls is swapped
-(``unittest.mock.patch.object``) for one that applies the overrides: ``evaluate.make_estimator`` and
-``closed_loop.make_estimator`` (estimator settings), ``fly.ClosedLoopSim`` (rig fields),
-``record.get_scenario`` / ``failures.failure_record_scenario`` (the IMU preset of a recording). A moved
-attribute makes ``patch.object`` raise, and ``tests/test_sweep.py`` checks that an override changes the
-result. Once those functions take ``params=`` / ``window_params=`` / ``rig=`` arguments, pass them instead.
+Parameter overrides are passed to the run functions as arguments: ``msckf.*`` / ``window.*`` as the
+estimator settings of :class:`~viotb.envs.data.evaluate.EvalOptions` or of the rig
+(:class:`~viotb.envs.sim.rig.RigConfig`), ``rig.*`` through ``fly(edit_rig=...)``, the ``imu`` axis as the
+recording's or the rig's IMU preset.
 """
 
 from __future__ import annotations
@@ -28,13 +24,20 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Callable
-from contextlib import ExitStack
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from typing import Any
-from unittest.mock import patch
+
+from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
+from viotb.envs.data.record import record_scenario
+from viotb.envs.run.fly import fly
+from viotb.envs.scenarios.registry import list_scenarios
+from viotb.envs.sim.imu_model import imu_preset_names
+from viotb.envs.sim.rig import RigConfig
+from viotb.vio.factory import ESTIMATOR_NAMES, FRONTEND_NAMES
+from viotb.vio.msckf_params import MsckfParams
+from viotb.vio.window import WindowParams
 
 MODES = ("record-eval", "fly")
 """Run modes: record then evaluate (open loop), or a closed-loop flight."""
@@ -129,13 +132,6 @@ class Catalog:
 
 def catalog() -> Catalog:
     """The current registries (imports the scenario modules: about a second)."""
-    from viotb.envs.closed_loop import RigConfig  # noqa: PLC0415
-    from viotb.envs.imu_model import imu_preset_names  # noqa: PLC0415
-    from viotb.envs.scenarios import list_scenarios  # noqa: PLC0415
-    from viotb.vio.factory import ESTIMATOR_NAMES, FRONTEND_NAMES  # noqa: PLC0415
-    from viotb.vio.msckf import MsckfParams  # noqa: PLC0415
-    from viotb.vio.window import WindowParams  # noqa: PLC0415
-
     items = list_scenarios()
     kinds = {"record-eval": "record", "fly": "fly"}
     return Catalog(
@@ -164,7 +160,7 @@ def run_config(cfg: RunConfig) -> dict:
     Raises:
         ValueError: Unknown mode, scenario, estimator, ...; whatever the run raises.
     """
-    from threadpoolctl import threadpool_limits  # noqa: PLC0415
+    from threadpoolctl import threadpool_limits
 
     os.environ.setdefault("MUJOCO_GL", "egl")
     groups = split_params(cfg.params)
@@ -227,88 +223,53 @@ def flatten_metrics(data: dict, prefix: str = "", drop: frozenset[str] | set[str
 
 
 @dataclass(frozen=True)
-class _EstimatorFactory:
-    """``make_estimator`` with the sweep's MSCKF / window overrides applied to the settings it is given."""
+class _RigEdit:
+    """Picklable rig edit of a ``fly`` run: ``rig.*`` fields, the IMU axis and the estimator settings."""
 
-    make: Callable[..., Any]
+    rig: dict
     msckf: dict
     window: dict
 
-    def __call__(self, name, calib, noise, *, frontend="klt", params=None, window_params=None):
-        from viotb.vio.msckf import MsckfParams  # noqa: PLC0415
-        from viotb.vio.window import WindowParams  # noqa: PLC0415
-
-        p = apply_overrides(params if params is not None else MsckfParams(), self.msckf)
-        w = apply_overrides(window_params if window_params is not None else WindowParams(), self.window)
-        return self.make(name, calib, noise, frontend=frontend, params=p, window_params=w)
-
-
-@dataclass(frozen=True)
-class _WithOverrides:
-    """Wrap a function returning a frozen dataclass: the result gets ``fields`` replaced."""
-
-    fn: Callable[..., Any]
-    fields: dict
-
-    def __call__(self, *args, **kwargs):
-        return dataclasses.replace(self.fn(*args, **kwargs), **self.fields)
-
-
-@dataclass(frozen=True)
-class _RigSim:
-    """``ClosedLoopSim`` built on its rig with the sweep's ``rig.*`` overrides applied."""
-
-    cls: type
-    overrides: dict
-
-    def __call__(self, config, seed=0):
-        return self.cls(apply_overrides(config, self.overrides), seed=seed)
+    def __call__(self, rig: RigConfig) -> RigConfig:
+        rig = apply_overrides(rig, self.rig)
+        msckf = apply_overrides(rig.msckf if rig.msckf is not None else MsckfParams(), self.msckf)
+        window = apply_overrides(rig.window if rig.window is not None else WindowParams(), self.window)
+        return dataclasses.replace(rig, msckf=msckf, window=window)
 
 
 def _record_eval(cfg: RunConfig, groups: dict[str, dict[str, Any]]) -> dict:
-    from viotb.envs import evaluate, failures, record  # noqa: PLC0415
-
     if groups["rig"]:
         raise ValueError(f"rig.* parameters apply to mode 'fly' only, got {sorted(groups['rig'])}")
-    with tempfile.TemporaryDirectory(prefix="viotb-sweep-") as tmp, ExitStack() as stack:
-        if cfg.imu is not None:
-            imu = {"imu_preset": cfg.imu}
-            stack.enter_context(
-                patch.object(record, "get_scenario", _WithOverrides(record.get_scenario, imu))
-            )
-            stack.enter_context(
-                patch.object(
-                    failures,
-                    "failure_record_scenario",
-                    _WithOverrides(failures.failure_record_scenario, imu),
-                )
-            )
-        factory = _EstimatorFactory(evaluate.make_estimator, groups["msckf"], groups["window"])
-        stack.enter_context(patch.object(evaluate, "make_estimator", factory))
-        rec = record.record_scenario(
-            cfg.scenario, tmp, seed=cfg.seed, seconds=cfg.seconds, severity=cfg.severity
+    with tempfile.TemporaryDirectory(prefix="viotb-sweep-") as tmp:
+        rec = record_scenario(
+            cfg.scenario, tmp, seed=cfg.seed, seconds=cfg.seconds, severity=cfg.severity, imu_preset=cfg.imu
         )
-        opts = evaluate.EvalOptions(estimator=cfg.estimator, frontend=cfg.frontend, seed=cfg.seed)
-        result = evaluate.evaluate_dataset(Path(tmp), Path(tmp) / "eval", opts)
+        opts = EvalOptions(
+            estimator=cfg.estimator,
+            frontend=cfg.frontend,
+            seed=cfg.seed,
+            msckf=apply_overrides(MsckfParams(), groups["msckf"]),
+            window=apply_overrides(WindowParams(), groups["window"]),
+        )
+        result = evaluate_dataset(Path(tmp), Path(tmp) / "eval", opts)
     metrics = flatten_metrics(result, drop=_DROP["record-eval"])
     metrics.update(flatten_metrics(rec, "record/", drop=_DROP["record"]))
     return metrics
 
 
 def _fly(cfg: RunConfig, groups: dict[str, dict[str, Any]]) -> dict:
-    from viotb.envs import closed_loop  # noqa: PLC0415
-    from viotb.envs import fly as fly_module  # noqa: PLC0415
-
     rig = dict(groups["rig"])
     if cfg.imu is not None:
         rig["imu_preset"] = cfg.imu
-    with ExitStack() as stack:
-        factory = _EstimatorFactory(closed_loop.make_estimator, groups["msckf"], groups["window"])
-        stack.enter_context(patch.object(closed_loop, "make_estimator", factory))
-        stack.enter_context(patch.object(fly_module, "ClosedLoopSim", _RigSim(fly_module.ClosedLoopSim, rig)))
-        result, _log = fly_module.fly(
-            cfg.scenario, cfg.estimator, cfg.seconds, cfg.seed, cfg.frontend, severity=cfg.severity
-        )
+    result, _log = fly(
+        cfg.scenario,
+        cfg.estimator,
+        cfg.seconds,
+        cfg.seed,
+        cfg.frontend,
+        severity=cfg.severity,
+        edit_rig=_RigEdit(rig, groups["msckf"], groups["window"]),
+    )
     return flatten_metrics(result, drop=_DROP["fly"])
 
 

@@ -108,7 +108,7 @@ class SweepSpec:
 
 def load_spec(path: Path | str, cat: Catalog | None = None) -> SweepSpec:
     """Read and validate a YAML spec file (SpecError naming the file and the culprit)."""
-    import yaml  # noqa: PLC0415
+    import yaml
 
     p = Path(path)
     if not p.is_file():
@@ -136,7 +136,7 @@ def parse_spec(
             estimator, front end, IMU preset or mode; no scenario.
     """
     if cat is None:
-        from viotb.envs.tools.sweep.runs import catalog  # noqa: PLC0415
+        from viotb.envs.tools.sweep.runs import catalog
 
         cat = catalog()
 
