@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from viotb.envs.euroc import load_image, read_euroc
+from viotb.envs.data.euroc import load_image, read_euroc
 from viotb.vio.lie import log_so3, rotz
 from viotb.vio.loop import LoopCloser, LoopClosureParams, PlaceRecognitionParams, RigidTransform
 from viotb.vio.loop.map_io import MAP_KEYS, read_map_arrays

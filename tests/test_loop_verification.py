@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from viotb.envs.euroc import load_image, read_euroc
+from viotb.envs.data.euroc import load_image, read_euroc
 from viotb.vio.lie import exp_so3, log_so3, quat_wxyz_to_rotmat, rotz
 from viotb.vio.loop.frames import RigidTransform
 from viotb.vio.loop.keyframes import Keyframe, KeyframeDatabase

@@ -9,8 +9,8 @@ import mujoco
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from viotb.envs.render import OffscreenRenderer, camera_calibration, rgb_to_gray
-from viotb.envs.sim import Simulation
+from viotb.envs.sim.render import OffscreenRenderer, camera_calibration, rgb_to_gray
+from viotb.envs.sim.simulation import Simulation
 from viotb.models import compose_xml
 from viotb.models.constants import (
     HEAD_BODY,

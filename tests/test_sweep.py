@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 from scipy.stats import chi2
 from typer.testing import CliRunner
-from viotb.envs.cli import app
+from viotb.envs.tools.cli import app
 from viotb.envs.tools.sweep import RunConfig, SpecError, parse_spec, run_config, run_sweep
 from viotb.envs.tools.sweep.engine import WORKER_ENV
 from viotb.envs.tools.sweep.report import nees_band, sweep_report
