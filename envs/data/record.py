@@ -41,7 +41,7 @@ def record_scenario(
     seconds: float | None = None,
     progress: Callable[[float, float], None] | None = None,
     severity: float | None = None,
-    imu_preset: str | None = None,
+    imu_name: str | None = None,
 ) -> dict:
     """Simulate scenario ``name`` open loop and write a EuRoC ASL folder ``out_dir/mav0``.
 
@@ -53,7 +53,7 @@ def record_scenario(
         progress: Optional callback ``(done, total)`` called after each rendered frame.
         severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.scenarios.failures``); None =
             default.
-        imu_preset: Record with this IMU preset instead of the scenario's (None: the scenario's).
+        imu_name: Record with this IMU preset instead of the scenario's (None: the scenario's).
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
@@ -72,8 +72,8 @@ def record_scenario(
         scenario = get_scenario(name)
     else:
         scenario = failure_record_scenario(name, severity)
-    if imu_preset is not None:
-        scenario = replace(scenario, imu_preset=imu_preset)
+    if imu_name is not None:
+        scenario = replace(scenario, imu_preset=imu_name)
     if seconds is not None and not (np.isfinite(seconds) and seconds > 0.0):
         raise ValueError(f"record_scenario: seconds must be positive, got {seconds}")
     duration_s = float(scenario.default_seconds if seconds is None else seconds)

@@ -7,7 +7,9 @@ image path: a rendered 12 s ``figure8`` recording evaluated with the KLT front e
 s closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``), and the circle with the sliding-window
 optimizer (``circle-sim-window``).
 
-The baseline holds the full set; a short run is compared on the short set's cases only.
+The baseline holds the full set; a short run is compared on the short set's cases only. Every case is a
+:class:`~viotb.envs.tools.sweep.runs.RunConfig` run by :func:`~viotb.envs.tools.sweep.runs.run_config`, the
+engine of ``viotb sweep``, so a sweep over the same configuration gives the same numbers by construction.
 
 Metrics per case: ``ate_m`` (4-DOF aligned RMS), ``final_err_m``, ``drift_pct`` (final error / path length),
 ``scale_error_pct`` (absolute), ``nees_pos`` (mean position NEES), and ``timing_ratio`` (ms per frame divided
@@ -20,15 +22,14 @@ A metric regresses when ``value > baseline + abs_tol + rel_tol * |baseline|`` (a
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.run.failure_runner import run_stream
-from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
-from viotb.vio.metrics import align_umeyama
+from viotb.envs.scenarios.streams import StreamConfig
+from viotb.envs.tools.sweep.runs import RunConfig, run_config
 from viotb.vio.msckf import MsckfParams
 
 DEFAULT_BASELINE = Path(__file__).resolve().parents[2] / "benchmarks" / "regress_baseline.json"
@@ -83,47 +84,47 @@ def reference_ms() -> float:
     return float(np.median(out))
 
 
-def _stream_case(
-    cfg: StreamConfig, seed: int, params: MsckfParams, ref_ms: float, estimator: str = "msckf"
-) -> dict:
-    stream = synthesize_stream(cfg, seed)
-    t0 = time.perf_counter()
-    res = run_stream(stream, params, estimator=estimator)
-    ms = (time.perf_counter() - t0) * 1e3 / max(len(res.run.health), 1)
-    m = res.metrics
-    path = float(np.sum(np.linalg.norm(np.diff(stream.truth.p_WB, axis=0), axis=1)))
-    # Position NEES after the 4-DOF (yaw + translation) alignment of the whole run (the gauge of VIO).
-    nees = []
-    ests = [e for e in res.run.estimates if e is not None and np.all(np.isfinite(e.p_WB))]
-    if len(ests) >= 3:
-        p_est = np.array([e.p_WB for e in ests])
-        t = np.array([e.t_s for e in ests])
-        p_gt = np.stack([np.interp(t, stream.truth.t_s, stream.truth.p_WB[:, j]) for j in range(3)], axis=1)
-        al = align_umeyama(p_est, p_gt, "posyaw")
-        for e, d in zip(ests, al.apply(p_est) - p_gt, strict=True):
-            P = al.R @ e.cov_position_W_m2 @ al.R.T
-            nees.append(float(d @ np.linalg.solve(P, d)))
-    return {
-        "ate_m": m["ate_m"],
-        "final_err_m": m["final_err_m"],
-        "drift_pct": 100.0 * m["final_err_m"] / path if path > 0 else float("nan"),
-        "scale_error_pct": abs(m["scale_error_pct"]),
-        "nees_pos": float(np.mean(nees)) if nees else float("nan"),
-        "timing_ratio": ms / ref_ms,
-        "diverged": bool(m["diverged"]),
-    }
+def _overrides(params: MsckfParams, default: object, prefix: str = "msckf") -> tuple[tuple[str, object], ...]:
+    """Dotted ``msckf.*`` overrides of the fields where ``params`` differs from the defaults (nested too)."""
+    out: list[tuple[str, object]] = []
+    for f in dataclasses.fields(params):
+        value, base = getattr(params, f.name), getattr(default, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            out.extend(_overrides(value, base, f"{prefix}.{f.name}"))
+        elif value != base:
+            out.append((f"{prefix}.{f.name}", value))
+    return tuple(sorted(out, key=lambda kv: kv[0]))
+
+
+def _stream_run(
+    name: str, cfg: StreamConfig, seed: int, overrides: tuple, estimator: str = "msckf"
+) -> RunConfig:
+    """The sweep run of an open-loop stream case (mode ``stream``)."""
+    stream = (("stream.landmark_count", cfg.landmark_count), ("stream.speed_scale", cfg.speed_scale))
+    return RunConfig(
+        scenario=cfg.motion,
+        mode="stream",
+        estimator=estimator,
+        frontend="sim",
+        seconds=cfg.seconds,
+        seed=seed,
+        params=tuple(sorted(stream + (overrides if estimator == "msckf" else ()), key=lambda kv: kv[0])),
+    )
+
+
+def _stream_case(run: RunConfig, ref_ms: float) -> dict:
+    m = run_config(run)
+    keys = ("ate_m", "final_err_m", "drift_pct", "scale_error_pct", "nees_pos")
+    return {**{k: m[k] for k in keys}, "timing_ratio": m["ms_per_frame"] / ref_ms, "diverged": m["diverged"]}
 
 
 def _recording_case(seed: int, ref_ms: float) -> dict:
-    """``figure8`` rendered for 12 s, replayed through the MSCKF with the KLT front end."""
-    import tempfile
-
-    from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
-    from viotb.envs.data.record import record_scenario
-
-    with tempfile.TemporaryDirectory(prefix="viotb-regress-") as tmp:
-        record_scenario("figure8", tmp, seed=seed, seconds=12.0)
-        m = evaluate_dataset(Path(tmp), Path(tmp) / "eval", EvalOptions(estimator="msckf", frontend="klt"))
+    """``figure8`` rendered for 12 s, replayed by the MSCKF with the KLT front end (mode ``record-eval``)."""
+    m = run_config(
+        RunConfig(
+            scenario="figure8", mode="record-eval", estimator="msckf", frontend="klt", seconds=12.0, seed=seed
+        )
+    )
     nan = float("nan")
     return {
         "ate_m": m.get("ate_posyaw_m", nan),
@@ -136,16 +137,19 @@ def _recording_case(seed: int, ref_ms: float) -> dict:
 
 
 def _fly_case(seed: int, ref_ms: float, frontend: str = "sim", seconds: float = 15.0) -> dict:
-    from viotb.envs.run.fly import fly
-
-    t0 = time.perf_counter()
-    # 15 s: ground init, takeoff and the excitation manoeuvre the filter asks for leave ~4 s of hover.
-    m, log = fly("fly-hover", estimator="msckf", seconds=seconds, seed=seed, frontend=frontend)
-    ms = (time.perf_counter() - t0) * 1e3 / max(len(log.frame_t_s), 1)
+    """``fly-hover`` (mode ``fly``): 15 s leave ~4 s of hover after ground init, takeoff and excitation."""
+    m = run_config(
+        RunConfig(
+            scenario="fly-hover", mode="fly", estimator="msckf", frontend=frontend, seconds=seconds, seed=seed
+        )
+    )
+    wall_s = m["seconds"] / m["realtime_factor"] if m["realtime_factor"] else float("nan")
+    ms = wall_s * 1e3 / max(m["frames_delivered"], 1)
+    nan = float("nan")
     return {
-        "ate_m": m["ate_posyaw_m"] if m["ate_posyaw_m"] is not None else float("nan"),
-        "final_err_m": m["max_err_m"] if m["max_err_m"] is not None else float("nan"),
-        "hover_rms_m": m["hover_rms_m"] if m["hover_rms_m"] is not None else float("nan"),
+        "ate_m": m["ate_posyaw_m"] if m["ate_posyaw_m"] is not None else nan,
+        "final_err_m": m["max_err_m"] if m["max_err_m"] is not None else nan,
+        "hover_rms_m": m["hover_rms_m"] if m["hover_rms_m"] is not None else nan,
         "timing_ratio": ms / ref_ms,
         "diverged": bool(m["diverged"]),
     }
@@ -167,21 +171,22 @@ def run_suite(
         fly_case: Include the closed-loop ``fly-hover`` case.
         only: Run only these open-loop cases (None = all of the set).
     """
-    prm = replace(params if params is not None else MsckfParams(), frontend="sim")
+    prm = params if params is not None else MsckfParams()
+    overrides = _overrides(prm, MsckfParams())
     ref = reference_ms()
     cases = dict(SHORT_CASES)
     if full:
         cases.update(FULL_CASES)
     if only is not None:
         cases = {k: v for k, v in cases.items() if k in only}
-    out = {name: _stream_case(cfg, seed, prm, ref) for name, cfg in cases.items()}
+    out = {name: _stream_case(_stream_run(cfg, seed, overrides), ref) for name, cfg in cases.items()}
     if fly_case:
         out["fly-hover-sim"] = _fly_case(seed, ref)
     if full and only is None:
         out["figure8-klt"] = _recording_case(seed, ref)
         out["fly-hover-klt"] = _fly_case(seed, ref, frontend="klt", seconds=20.0)
         for name, cfg in WINDOW_CASES.items():
-            out[name] = _stream_case(cfg, seed, prm, ref, estimator="window")
+            out[name] = _stream_case(_stream_run(cfg, seed, (), estimator="window"), ref)
     return {"reference_ms": ref, "seed": seed, "cases": out}
 
 

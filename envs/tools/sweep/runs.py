@@ -31,21 +31,26 @@ from typing import Any
 
 from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 from viotb.envs.data.record import record_scenario
+from viotb.envs.run.failure_runner import stream_metrics
 from viotb.envs.run.fly import fly
+from viotb.envs.scenarios.motions import TRAJECTORY_FACTORIES
 from viotb.envs.scenarios.registry import list_scenarios
+from viotb.envs.scenarios.streams import StreamConfig
 from viotb.envs.sim.imu_model import imu_preset_names
 from viotb.envs.sim.rig import RigConfig
 from viotb.vio.factory import ESTIMATOR_NAMES, FRONTEND_NAMES
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.window import WindowParams
 
-MODES = ("record-eval", "fly")
-"""Run modes: record then evaluate (open loop), or a closed-loop flight."""
+MODES = ("record-eval", "fly", "stream")
+"""Run modes: record then evaluate (open loop), a closed-loop flight, or an in-memory stream (no rendering:
+``viotb regress``'s open-loop cases; the scenario is a motion of the library)."""
 CORE_AXES = ("mode", "scenario", "estimator", "frontend", "imu", "severity", "seconds")
 """Axes of a run besides the seed and the dataclass parameters."""
-PARAM_ROOTS = ("msckf", "window", "rig")
+PARAM_ROOTS = ("msckf", "window", "rig", "stream")
 """Prefixes of parameter axes: ``msckf.<MsckfParams field>``, ``window.<WindowParams field>``,
-``rig.<RigConfig field>`` (nested dataclasses by more dots: ``msckf.klt.max_features``)."""
+``rig.<RigConfig field>``, ``stream.<StreamConfig field>`` (nested dataclasses by more dots:
+``msckf.klt.max_features``)."""
 RIG_FIELDS_AS_AXES = {"estimator": "estimator", "frontend": "frontend", "imu_preset": "imu"}
 """RigConfig fields that the core axes set (naming them as ``rig.*`` is refused)."""
 _DROP = {
@@ -134,14 +139,14 @@ def catalog() -> Catalog:
     """The current registries (imports the scenario modules: about a second)."""
     items = list_scenarios()
     kinds = {"record-eval": "record", "fly": "fly"}
+    scenarios = {mode: tuple(s["name"] for s in items if s["kind"] == kind) for mode, kind in kinds.items()}
+    scenarios["stream"] = tuple(sorted(TRAJECTORY_FACTORIES))
     return Catalog(
-        scenarios={
-            mode: tuple(s["name"] for s in items if s["kind"] == kind) for mode, kind in kinds.items()
-        },
+        scenarios=scenarios,
         estimators=tuple(ESTIMATOR_NAMES),
         frontends=tuple(FRONTEND_NAMES),
         imu_presets=tuple(imu_preset_names()),
-        param_roots={"msckf": MsckfParams, "window": WindowParams, "rig": RigConfig},
+        param_roots={"msckf": MsckfParams, "window": WindowParams, "rig": RigConfig, "stream": StreamConfig},
     )
 
 
@@ -169,6 +174,8 @@ def run_config(cfg: RunConfig) -> dict:
             return _record_eval(cfg, groups)
         if cfg.mode == "fly":
             return _fly(cfg, groups)
+        if cfg.mode == "stream":
+            return _stream(cfg, groups)
     raise ValueError(f"unknown mode {cfg.mode!r}; allowed: {', '.join(MODES)}")
 
 
@@ -242,7 +249,7 @@ def _record_eval(cfg: RunConfig, groups: dict[str, dict[str, Any]]) -> dict:
         raise ValueError(f"rig.* parameters apply to mode 'fly' only, got {sorted(groups['rig'])}")
     with tempfile.TemporaryDirectory(prefix="viotb-sweep-") as tmp:
         rec = record_scenario(
-            cfg.scenario, tmp, seed=cfg.seed, seconds=cfg.seconds, severity=cfg.severity, imu_preset=cfg.imu
+            cfg.scenario, tmp, seed=cfg.seed, seconds=cfg.seconds, severity=cfg.severity, imu_name=cfg.imu
         )
         opts = EvalOptions(
             estimator=cfg.estimator,
@@ -271,6 +278,20 @@ def _fly(cfg: RunConfig, groups: dict[str, dict[str, Any]]) -> dict:
         edit_rig=_RigEdit(rig, groups["msckf"], groups["window"]),
     )
     return flatten_metrics(result, drop=_DROP["fly"])
+
+
+def _stream(cfg: RunConfig, groups: dict[str, dict[str, Any]]) -> dict:
+    """An in-memory stream of motion ``cfg.scenario`` through the MSCKF or the window optimizer."""
+    if groups["rig"] or groups["window"]:
+        raise ValueError(f"mode 'stream' takes msckf.* and stream.* parameters, got {cfg.params}")
+    sc = StreamConfig(motion=cfg.scenario)
+    if cfg.seconds is not None:
+        sc = dataclasses.replace(sc, seconds=float(cfg.seconds))
+    if cfg.imu is not None:
+        sc = dataclasses.replace(sc, imu_preset=cfg.imu)
+    sc = apply_overrides(sc, groups["stream"])
+    params = apply_overrides(MsckfParams(), groups["msckf"])
+    return flatten_metrics(stream_metrics(sc, cfg.seed, params, estimator=cfg.estimator))
 
 
 def _digest(data: dict) -> str:

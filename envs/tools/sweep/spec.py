@@ -5,7 +5,7 @@ Format (every section but ``fixed.scenario`` optional)::
     name: drift-vs-imu
     fixed:                      # held for every run
       scenario: circle
-      mode: record-eval         # record-eval (default) | fly
+      mode: record-eval         # record-eval (default) | fly | stream
       frontend: sim
       seconds: 10
     grid:                       # full product of the lists, in this order
@@ -294,6 +294,14 @@ def _check_run(cfg: RunConfig, cat: Catalog, fail) -> None:
     rig = [name for name, _ in cfg.params if name.startswith("rig.")]
     if rig and cfg.mode != "fly":
         raise fail(f"{rig} apply to mode 'fly' only (this run is {cfg.mode})")
+    stream = [name for name, _ in cfg.params if name.startswith("stream.")]
+    if stream and cfg.mode != "stream":
+        raise fail(f"{stream} apply to mode 'stream' only (this run is {cfg.mode})")
+    if cfg.mode == "stream" and (cfg.frontend != "sim" or cfg.estimator not in ("msckf", "window")):
+        raise fail(
+            f"mode 'stream' runs msckf or window on simulated features (frontend 'sim'), got estimator "
+            f"{cfg.estimator!r}, frontend {cfg.frontend!r}"
+        )
     if cfg.severity is not None and "fail-" not in cfg.scenario:
         raise fail(f"severity applies to fail-* scenarios only, got scenario {cfg.scenario!r}")
     # Draws are validated here: a uniform draw on an int field is refused.
