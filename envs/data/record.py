@@ -25,7 +25,7 @@ from viotb.envs.data.euroc_writer import write_euroc
 from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
-from viotb.envs.sim.imu_model import ImuModel
+from viotb.envs.sim.imu_model import ImuModel, imu_preset
 from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
