@@ -329,18 +329,30 @@ def test_real_euroc_at_rest_holds_position_with_zero_velocity_factor():
 
 
 @pytest.mark.slow
-def test_window_figure8_multi_seed_against_msckf():
-    """Seeds 0-7, 8 s figure-8: every window ATE below 4 cm and the mean below the MSCKF's mean.
+def test_window_figure8_multi_seed_against_msckf(tmp_path):
+    """Seeds 0-7, 8 s figure-8, through the sweep engine: every window ATE below 4 cm, mean below the MSCKF's.
 
     Measured (window / MSCKF, cm): 1.8/2.1, 1.6/2.5, 2.6/2.6, 1.3/1.8, 1.4/1.7, 1.5/2.2, 1.5/1.5, 1.2/1.8;
     mean 1.6 vs 2.0.
     """
-    from viotb.envs.run.failure_runner import run_stream
+    import pandas as pd
+    from viotb.envs.tools.sweep import run_sweep
 
-    ates, ates_msckf = [], []
-    for seed in range(8):
-        stream = _stream(seed, 8.0)
-        ates.append(_run_window(stream)[1])
-        ates_msckf.append(run_stream(stream).metrics["ate_m"])
+    spec = {
+        "fixed": {
+            "mode": "stream",
+            "frontend": "sim",
+            "scenario": "figure8",
+            "seconds": 8.0,
+            "stream.landmark_count": 600,
+            "msckf.pixel_sigma_px": 0.5,
+        },
+        "grid": {"estimator": ["msckf", "window"]},
+        "seeds": list(range(8)),
+    }
+    df = pd.read_parquet(run_sweep(spec, tmp_path / "sweep", workers=2).results)
+    assert (df.status == "ok").all(), df[["status", "error"]]
+    ates = df[df["config/estimator"] == "window"].sort_values("seed")["ate_m"].to_numpy()
+    ates_msckf = df[df["config/estimator"] == "msckf"].sort_values("seed")["ate_m"].to_numpy()
     assert max(ates) < 0.04, ates
     assert np.mean(ates) < np.mean(ates_msckf), (ates, ates_msckf)

@@ -184,7 +184,8 @@ def stream_metrics(
     Returns:
         ``ate_m``, ``final_err_m``, ``drift_pct`` (final error over path length), ``scale_error_pct``
         (absolute), ``nees_pos`` (position NEES after the 4-DOF alignment of the whole run, the gauge of VIO),
-        ``ms_per_frame`` (wall time of the run per frame) and ``diverged``.
+        ``ms_per_frame`` (wall time of the run per frame), ``diverged``, ``init_time_s`` and ``conditions``
+        (the names the health monitor raised).
     """
     stream = synthesize_stream(cfg, seed)
     prm = replace(params, frontend="sim") if params is not None else None
@@ -211,4 +212,6 @@ def stream_metrics(
         "nees_pos": float(np.mean(nees)) if nees else float("nan"),
         "ms_per_frame": ms,
         "diverged": bool(m["diverged"]),
+        "init_time_s": m["init_time_s"],
+        "conditions": [c.name for c in res.run.monitor.report()],
     }

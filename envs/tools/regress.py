@@ -96,9 +96,7 @@ def _overrides(params: MsckfParams, default: object, prefix: str = "msckf") -> t
     return tuple(sorted(out, key=lambda kv: kv[0]))
 
 
-def _stream_run(
-    name: str, cfg: StreamConfig, seed: int, overrides: tuple, estimator: str = "msckf"
-) -> RunConfig:
+def _stream_run(cfg: StreamConfig, seed: int, overrides: tuple, estimator: str = "msckf") -> RunConfig:
     """The sweep run of an open-loop stream case (mode ``stream``)."""
     stream = (("stream.landmark_count", cfg.landmark_count), ("stream.speed_scale", cfg.speed_scale))
     return RunConfig(
