@@ -15,7 +15,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import NoReturn
 
-import click
 import typer
 from rich.console import Console
 from rich.markup import escape
@@ -43,29 +42,37 @@ def err_console() -> Console:
     return Console(stderr=True)
 
 
-class NamedChoice(click.Choice):
-    """A ``click.Choice`` whose error says ``unknown <what> 'x'; allowed: a, b`` (``--help`` lists them)."""
+def choice_option(default: str, flag: str, what: str, choices: Sequence[str], help_text: str = "") -> str:
+    """An option whose allowed values ``--help`` lists (``[a|b|c]``) and whose error says ``unknown <what>``.
 
-    def __init__(self, what: str, choices: Sequence[str]) -> None:
-        """Choices ``choices`` of a value called ``what`` in messages."""
-        super().__init__(list(choices))
-        self.what = what
+    Args:
+        default: Default value (one of ``choices``).
+        flag: The option's name (``--estimator``).
+        what: What a value is called in messages (``estimator``).
+        choices: The allowed values.
+        help_text: Help after the list of choices.
+    """
+    allowed = tuple(choices)
 
-    def get_invalid_choice_message(self, value: object, ctx: click.Context | None) -> str:
-        """The message of a value outside the choices."""
-        return f"unknown {self.what} {value!r}; allowed: {', '.join(map(str, self.choices))}"
+    def parse(value: str) -> str:
+        if value not in allowed:
+            raise ValueError(f"unknown {what} {value!r}; allowed: {', '.join(allowed)}")
+        return value
+
+    listing = "|".join(allowed)
+    return typer.Option(
+        default, flag, parser=parse, metavar=f"[{listing}]", help=f"One of {', '.join(allowed)}. {help_text}"
+    )
 
 
 def estimator_option(default: str = "msckf") -> str:
     """The ``--estimator`` option, its allowed values listed by ``--help``."""
-    return typer.Option(
-        default, "--estimator", click_type=NamedChoice("estimator", ESTIMATORS), help="Estimator."
-    )
+    return choice_option(default, "--estimator", "estimator", ESTIMATORS, "Estimator.")
 
 
 def frontend_option(default: str = "klt", help_text: str = "Front end.") -> str:
     """The ``--frontend`` option: ``klt`` (OpenCV KLT on images) or ``sim`` (simulated features)."""
-    return typer.Option(default, "--frontend", click_type=NamedChoice("front end", FRONTENDS), help=help_text)
+    return choice_option(default, "--frontend", "front end", FRONTENDS, help_text)
 
 
 def seed_option() -> int:
