@@ -263,3 +263,38 @@ def test_waypoints_reached_in_order_with_position_action():
     assert info["termination_reason"] == "success"
     assert bonuses == pytest.approx(2 * HoverEnvConfig().rewards.waypoint)
     env.close()
+
+
+@pytest.mark.parametrize(
+    ("override", "field"),
+    [
+        ({"ctrl_dt": "0.02"}, "ctrl_dt"),
+        ({"start_p_W_m": (0.0, 0.0)}, "start_p_W_m"),
+        ({"start_position_sigma_m": -1.0}, "start_position_sigma_m"),
+        ({"camera_width": -5}, "camera_width"),
+        ({"position_range_m": float("nan")}, "position_range_m"),
+        ({"render_width": 0}, "render_width"),
+        ({"max_speed_m_s": -1.0}, "max_speed_m_s"),
+        ({"max_target_distance_m": -1.0}, "max_target_distance_m"),
+        ({"arena_margin_m": 100.0}, "arena_margin_m"),
+    ],
+)
+def test_constructor_arguments_are_validated_naming_the_field(override, field):
+    with pytest.raises(ValueError, match=rf"HoverEnvConfig\.{field}"):
+        gymnasium.make("viotb/Hover-v0", **override)
+
+
+def test_step_after_terminated_without_reset_raises():
+    env = gymnasium.make("viotb/Hover-v0", estimator="ground-truth", action_type="motors")
+    env.reset(seed=0)
+    terminated = False
+    for _ in range(500):  # motors off: the drone falls and crashes
+        _, _, terminated, _, info = env.step(np.full(4, -1.0, dtype=np.float32))
+        if terminated:
+            break
+    assert terminated and info["termination_reason"] in ("crashed", "left_arena", "too_far")
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(np.zeros(4, dtype=np.float32))
+    env.reset(seed=1)
+    env.step(np.zeros(4, dtype=np.float32))
+    env.close()

@@ -144,3 +144,47 @@ def test_motion_blur_costs_klt_tracks_during_a_spin(tmp_path):
         spin = [h["tracked_features"] for h in health if 2.5 < h["t_s"] < 4.0]
         tracked[name] = float(np.mean(spin))
     assert tracked["fast-rotation-blur"] < 0.7 * tracked["fast-rotation"], tracked
+
+
+def test_resolution_and_rates_are_recorded_in_the_sensor_files(tmp_path):
+    out = tmp_path / "euroc"
+    res = record_scenario(
+        "hover", out, seconds=0.5, resolution=(752, 480), camera_rate_hz=10.0, imu_rate_hz=400.0
+    )
+    assert (res["frames"], res["imu_samples"], res["resolution"]) == (6, 201, [752, 480])
+    ds = read_euroc(out)
+    assert (ds.calib.camera.width, ds.calib.camera.height, ds.calib.rate_hz, ds.imu_rate_hz) == (
+        752,
+        480,
+        10.0,
+        400.0,
+    )
+    assert load_image(ds, 0).shape == (480, 752)
+    big = record_scenario("hover", tmp_path / "big", seconds=0.05, resolution=(1024, 768))
+    assert big["resolution"] == [1024, 768]  # beyond the MJCF's 752x480 offscreen buffer
+
+
+def test_interrupted_record_leaves_nothing_that_looks_valid(tmp_path):
+    def interrupt(done: float, total: float) -> None:
+        if done >= 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        record_scenario("hover", tmp_path / "rec", seconds=2.0, progress=interrupt)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_streamed_imu_chunks_join_seamlessly(tmp_path, monkeypatch):
+    import viotb.envs.data.record as record_module
+
+    whole = record_scenario("circle", tmp_path / "whole", seed=1, seconds=1.0)
+    monkeypatch.setattr(record_module, "IMU_CHUNK_SAMPLES", 64)  # 201 samples in 4 chunks
+    chunked = record_scenario("circle", tmp_path / "chunked", seed=1, seconds=1.0)
+    assert whole["path_length_m"] == pytest.approx(chunked["path_length_m"], rel=1e-12)
+    for rel in ("cam0/data.csv", "state_groundtruth_estimate0/data.csv"):
+        a = (tmp_path / "whole" / "mav0" / rel).read_text()
+        assert a == (tmp_path / "chunked" / "mav0" / rel).read_text(), rel
+    imu_a, imu_b = (read_euroc(tmp_path / d).imu for d in ("whole", "chunked"))
+    np.testing.assert_array_equal(imu_a.t_s, imu_b.t_s)
+    np.testing.assert_array_equal(imu_a.gyro_B_rad_s, imu_b.gyro_B_rad_s)
+    np.testing.assert_array_equal(imu_a.accel_B_m_s2, imu_b.accel_B_m_s2)

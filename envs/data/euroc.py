@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
+from viotb.envs.data.validate import check_camera_ranges, check_imu_ranges
 from viotb.vio.camera import CameraCalibration, PinholeCamera
 from viotb.vio.types import ImuNoise, ImuSeries, TrajectoryArrays
 
@@ -105,14 +106,23 @@ def _require_file(path: Path) -> Path:
     return path
 
 
+class _SensorYamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that also reads OpenCV's ``!!opencv-matrix`` tag (a mapping with ``data``)."""
+
+
+_SensorYamlLoader.add_constructor(
+    "tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True)
+)
+
+
 def _read_yaml(path: Path) -> dict:
-    """Parse a sensor.yaml, tolerating OpenCV's ``%YAML:1.0`` first line."""
+    """Parse a sensor.yaml, tolerating OpenCV's ``%YAML:1.0`` first line and ``!!opencv-matrix`` tags."""
     text = _require_file(path).read_text()
     lines = text.splitlines()
     if lines and lines[0].startswith("%YAML"):
         lines = lines[1:]
     try:
-        data = yaml.safe_load("\n".join(lines))
+        data = yaml.load("\n".join(lines), Loader=_SensorYamlLoader)  # a SafeLoader subclass
     except yaml.YAMLError as exc:
         raise ValueError(f"{path}: malformed YAML: {exc}") from None
     if not isinstance(data, dict):
@@ -124,6 +134,8 @@ def _yaml_field(data: dict, path: Path, key: str, length: int | None = None) -> 
     if key not in data:
         raise ValueError(f"{path}: missing field {key!r}")
     value = data[key]
+    if isinstance(value, dict) and "data" in value and length is not None:
+        value = value["data"]  # an OpenCV matrix (``!!opencv-matrix``) holding the list
     if length is not None:
         if not isinstance(value, list) or len(value) != length:
             raise ValueError(f"{path}: field {key!r} must be a list of {length} numbers, got {value!r}")
@@ -171,6 +183,7 @@ def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
         raise ValueError(f"{path}: T_BS last row must be [0, 0, 0, 1], got {T[3].tolist()}")
     rate_hz = _yaml_number(data, path, "rate_hz")
     offset_s = _yaml_number(data, path, "timeshift_cam_imu") if "timeshift_cam_imu" in data else 0.0
+    check_camera_ranges(path, (fu, fv, cu, cv), (int(width), int(height)), rate_hz, offset_s)
     camera = PinholeCamera(int(width), int(height), fu, fv, cu, cv, dist)  # type: ignore[arg-type]
     calib = CameraCalibration(camera, R_BC.copy(), T[:3, 3].copy(), offset_s, rate_hz)
     return calib, int(width), int(height)
@@ -178,13 +191,11 @@ def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
 
 def _read_imu_yaml(path: Path) -> tuple[ImuNoise, float]:
     data = _read_yaml(path)
-    noise = ImuNoise(
-        _yaml_number(data, path, "gyroscope_noise_density"),
-        _yaml_number(data, path, "gyroscope_random_walk"),
-        _yaml_number(data, path, "accelerometer_noise_density"),
-        _yaml_number(data, path, "accelerometer_random_walk"),
-    )
-    return noise, _yaml_number(data, path, "rate_hz")
+    keys = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density")
+    densities = {key: _yaml_number(data, path, key) for key in (*keys, "accelerometer_random_walk")}
+    rate_hz = _yaml_number(data, path, "rate_hz")
+    check_imu_ranges(path, densities, rate_hz)
+    return ImuNoise(*densities.values()), rate_hz
 
 
 def _read_rows(path: Path, n_cols: int) -> tuple[list[int], list[list[str]]]:

@@ -4,34 +4,42 @@ Steps:
 
 1. Split the seed into independent streams (IMU, frame drops, pixel noise, landmarks) with
    ``numpy.random.SeedSequence.spawn`` so that changing one component does not shift the others.
-2. Sample the analytic truth at the IMU rate and pass it through the IMU model (bias walk, noise, ...).
-3. Build the camera schedule (exposure on the IMU clock, stamp on the camera clock, drops/blackouts).
-4. For each kept frame, place the vehicle kinematically at the exposure-time truth
-   (:meth:`Simulation.set_pose`) and render a gray image with pixel noise.
-5. Write ``mav0/`` (images streamed to disk as they are rendered), ground truth at the IMU rate with the
-   true biases, and the scene landmarks (for the simulated-feature fast mode).
+2. Build the camera schedule (exposure on the IMU clock, stamp on the camera clock, drops/blackouts).
+3. In chunks of :data:`IMU_CHUNK_SAMPLES`: sample the analytic truth at the IMU rate, pass it through the IMU
+   model (bias walk, noise, ...), write the IMU and ground-truth rows, then render and write the frames
+   exposed up to the chunk's end (the vehicle placed kinematically at the exposure-time truth). Memory stays
+   flat however long the recording, and the files grow from the start.
+4. Write the ``sensor.yaml`` files and the scene landmarks (for the simulated-feature fast mode).
+
+Everything is written into a temporary sibling of ``out_dir`` that becomes ``out_dir`` only when the
+recording is complete (:func:`viotb.envs.tools.outdir.atomic_out_dir`): an interrupted recording leaves
+nothing that ``viotb eval`` would accept.
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.data.euroc_writer import write_euroc
+from viotb.envs.data.euroc_stream import EurocStreamWriter
 from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
-from viotb.envs.sim.imu_model import ImuModel, imu_preset
+from viotb.envs.sim.imu_model import ImuModel
+from viotb.envs.sim.imu_model import imu_preset as imu_preset_params
+from viotb.envs.tools.outdir import atomic_out_dir
 from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
 
 LANDMARK_COUNT = 3000
 """Scene landmarks written to ``sim_landmarks0`` (for the simulated-feature front end)."""
+IMU_CHUNK_SAMPLES = 65536
+"""IMU samples simulated and written per chunk (a multiple of the IMU model's block: same bytes per seed)."""
 
 
 def record_scenario(
@@ -41,136 +49,153 @@ def record_scenario(
     seconds: float | None = None,
     progress: Callable[[float, float], None] | None = None,
     severity: float | None = None,
-    imu_name: str | None = None,
+    imu_preset: str | None = None,
+    resolution: tuple[int, int] | None = None,
+    camera_rate_hz: float | None = None,
+    imu_rate_hz: float | None = None,
+    overwrite: bool = False,
 ) -> dict:
     """Simulate scenario ``name`` open loop and write a EuRoC ASL folder ``out_dir/mav0``.
 
     Args:
         name: A ``"record"`` scenario (see ``viotb scenarios``).
-        out_dir: Output folder (created).
-        seed: Seed of every random component (same seed, byte-identical output).
+        out_dir: Output folder; checked before any work, refused when not empty unless ``overwrite``, and
+            written atomically.
+        seed: Seed of every random component (>= 0; same seed, byte-identical output).
         seconds: Duration (s); the scenario default when None.
         progress: Optional callback ``(done, total)`` called after each rendered frame.
         severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.scenarios.failures``); None =
             default.
-        imu_name: Record with this IMU preset instead of the scenario's (None: the scenario's).
+        imu_preset: Record with this IMU preset instead of the scenario's (None: the scenario's).
+        resolution: Image ``(width, height)`` in px (None: the scenario's, 320x240 by default).
+        camera_rate_hz: Camera rate (Hz; None: the scenario's).
+        imu_rate_hz: IMU rate (Hz; None: the preset's).
+        overwrite: Replace a non-empty ``out_dir`` when the recording completes.
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
-        "out", "dropped_frames", "saturated_samples"}``.
+        "out", "dropped_frames", "saturated_samples", "resolution", "camera_rate_hz", "imu_rate_hz"}``.
 
     Raises:
-        ValueError: Unknown scenario, a scenario without a scripted trajectory, or a bad duration.
+        ValueError: Unknown scenario, a scenario without a scripted trajectory, a bad duration, seed, size
+            or rate, or an unusable ``out_dir`` (:class:`viotb.envs.tools.outdir.OutDirError`).
     """
     os.environ.setdefault("MUJOCO_GL", "egl")
     from viotb.envs.sim.landmarks import scene_landmarks  # (imports mujoco)
-    from viotb.envs.sim.render import OffscreenRenderer, camera_calibration
+    from viotb.envs.sim.render import OffscreenRenderer, camera_calibration, ensure_offscreen_buffer
     from viotb.envs.sim.simulation import Simulation
 
     wall_start = time.perf_counter()
-    if severity is None:
-        scenario = get_scenario(name)
-    else:
-        scenario = failure_record_scenario(name, severity)
-    if imu_name is not None:
-        scenario = replace(scenario, imu_preset=imu_name)
+    if not (isinstance(seed, int | np.integer) and seed >= 0):
+        raise ValueError(f"record_scenario: seed must be an integer >= 0, got {seed!r}")
     if seconds is not None and not (np.isfinite(seconds) and seconds > 0.0):
         raise ValueError(f"record_scenario: seconds must be positive, got {seconds}")
+    scenario = get_scenario(name) if severity is None else failure_record_scenario(name, severity)
+    if imu_preset is not None:
+        scenario = replace(scenario, imu_preset=imu_preset)
+    cam_params = scenario.camera
+    if resolution is not None:
+        cam_params = replace(cam_params, width=int(resolution[0]), height=int(resolution[1]))
+    if camera_rate_hz is not None:
+        cam_params = replace(cam_params, rate_hz=float(camera_rate_hz))
+    imu_params = imu_preset_params(scenario.imu_preset)
+    if imu_rate_hz is not None:
+        imu_params = replace(imu_params, rate_hz=float(imu_rate_hz))
     duration_s = float(scenario.default_seconds if seconds is None else seconds)
     trajectory = scenario.make_trajectory(duration_s)
-    cam_params = scenario.camera
-    imu_params = imu_preset(scenario.imu_preset)
 
-    # 1. Independent random streams.
-    imu_seq, drop_seq, pixel_seq, landmark_seq = np.random.SeedSequence(seed).spawn(4)
+    with atomic_out_dir(out_dir, overwrite) as tmp_dir:
+        # 1. Independent random streams.
+        imu_seq, drop_seq, pixel_seq, landmark_seq = np.random.SeedSequence(seed).spawn(4)
+        imu_model = ImuModel(imu_params, np.random.default_rng(imu_seq))
+        faults = scenario.faults
 
-    # 2. Truth at the IMU rate -> IMU readings and the true biases.
-    n_imu = int(np.floor(duration_s * imu_params.rate_hz + 1e-9)) + 1
-    t_imu = np.arange(n_imu) / imu_params.rate_hz
-    truth = trajectory.sample_many(t_imu)
-    imu_model = ImuModel(imu_params, np.random.default_rng(imu_seq))
-    # The scenario's IMU faults (an extra gyro bias, an accelerometer scale error) act before the model.
-    faults = scenario.faults
-    imu, gyro_bias, accel_bias = imu_model.measure_series_with_biases(
-        t_imu, *faults.imu_input(truth.omega_B, truth.specific_force_B)
-    )
-    gyro_bias = gyro_bias + faults.extra_gyro_bias_rad_s
+        # 2. Camera schedule.
+        schedule = frame_schedule(cam_params, duration_s, np.random.default_rng(drop_seq))
+        kept = schedule.kept_indices
 
-    # 3. Camera schedule.
-    schedule = frame_schedule(cam_params, duration_s, np.random.default_rng(drop_seq))
-    kept = schedule.kept_indices
-
-    # 4. Render at the exposure instants.
-    sim = Simulation(scenario.vehicle, scenario.scene)
-    is_headset = scenario.vehicle == "headset"
-    calib = camera_calibration(
-        sim.model,
-        ONBOARD_CAMERA,
-        VEHICLE_BODIES[scenario.vehicle],
-        cam_params.width,
-        cam_params.height,
-        cam_params.time_offset_s,
-        cam_params.rate_hz,
-    )
-    renderer = OffscreenRenderer(
-        sim.model,
-        cam_params.width,
-        cam_params.height,
-        ONBOARD_CAMERA,
-        pixel_noise_std=cam_params.pixel_noise_std,
-        rng=np.random.default_rng(pixel_seq),
-    )
-
-    def place_at(t_s: float) -> None:
-        s = trajectory.sample(t_s)
-        sim.set_pose(s.R_WB, s.p_WB, s.v_WB, s.omega_B, a_W=s.a_WB if is_headset else None)
-
-    blur_offsets_s = np.linspace(-0.5, 0.5, cam_params.blur_samples) * cam_params.exposure_s
-
-    def frames() -> Iterator[tuple[float, np.ndarray]]:
-        for done, i in enumerate(kept, start=1):
-            t_exp = float(schedule.t_exposure_imu_s[i])
-            if cam_params.exposure_s > 0.0:
-                image = renderer.render_gray_exposure(
-                    sim.data, lambda o, t=t_exp: place_at(t + o), blur_offsets_s
-                )
-            else:
-                place_at(t_exp)
-                image = renderer.render_gray(sim.data)
-            yield float(schedule.t_stamp_cam_s[i]), image
-            if progress is not None:
-                progress(done, len(kept))
-
-    # 5. Write everything.
-    landmarks_W = scene_landmarks(sim.model, np.random.default_rng(landmark_seq), LANDMARK_COUNT)
-    groundtruth = TrajectoryArrays(
-        t_imu, truth.p_WB, np.array([rotmat_to_quat_wxyz(R) for R in truth.R_WB]), truth.v_WB
-    )
-    try:
-        mav0 = write_euroc(
-            out_dir,
-            imu,
-            frames(),
-            faults.told_calibration(calib),  # a wrong calibration file when the scenario says so
-            imu_params.noise,
-            groundtruth,
-            gyro_bias,
-            accel_bias,
-            landmarks_W,
-            imu_rate_hz=imu_params.rate_hz,
+        sim = Simulation(scenario.vehicle, scenario.scene)
+        ensure_offscreen_buffer(sim.model, cam_params.width, cam_params.height)
+        is_headset = scenario.vehicle == "headset"
+        calib = camera_calibration(
+            sim.model,
+            ONBOARD_CAMERA,
+            VEHICLE_BODIES[scenario.vehicle],
+            cam_params.width,
+            cam_params.height,
+            cam_params.time_offset_s,
+            cam_params.rate_hz,
         )
-    finally:
-        renderer.close()
+        renderer = OffscreenRenderer(
+            sim.model,
+            cam_params.width,
+            cam_params.height,
+            ONBOARD_CAMERA,
+            pixel_noise_std=cam_params.pixel_noise_std,
+            rng=np.random.default_rng(pixel_seq),
+        )
+
+        def place_at(t_s: float) -> None:
+            s = trajectory.sample(t_s)
+            sim.set_pose(s.R_WB, s.p_WB, s.v_WB, s.omega_B, a_W=s.a_WB if is_headset else None)
+
+        blur_offsets_s = np.linspace(-0.5, 0.5, cam_params.blur_samples) * cam_params.exposure_s
+
+        def render(t_exp: float) -> np.ndarray:
+            if cam_params.exposure_s > 0.0:
+                return renderer.render_gray_exposure(sim.data, lambda o: place_at(t_exp + o), blur_offsets_s)
+            place_at(t_exp)
+            return renderer.render_gray(sim.data)
+
+        # 3. IMU and ground truth in chunks, each followed by the frames exposed up to its end.
+        n_imu = int(np.floor(duration_s * imu_params.rate_hz + 1e-9)) + 1
+        path_length_m, saturated, next_frame, last_p = 0.0, 0, 0, None
+        # A wrong calibration file when the scenario says so.
+        writer = EurocStreamWriter(tmp_dir, faults.told_calibration(calib))
+        try:
+            for start in range(0, n_imu, IMU_CHUNK_SAMPLES):
+                t_imu = np.arange(start, min(start + IMU_CHUNK_SAMPLES, n_imu)) / imu_params.rate_hz
+                truth = trajectory.sample_many(t_imu)
+                # The scenario's IMU faults (an extra gyro bias, an accelerometer scale error) act first.
+                imu, gyro_bias, accel_bias = imu_model.measure_series_with_biases(
+                    t_imu, *faults.imu_input(truth.omega_B, truth.specific_force_B)
+                )
+                writer.imu(imu)
+                quat = np.array([rotmat_to_quat_wxyz(R) for R in truth.R_WB])
+                gt = TrajectoryArrays(t_imu, truth.p_WB, quat, truth.v_WB)
+                writer.groundtruth(gt, gyro_bias + faults.extra_gyro_bias_rad_s, accel_bias)
+                p = truth.p_WB if last_p is None else np.vstack([last_p, truth.p_WB])
+                path_length_m += float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+                last_p, saturated = truth.p_WB[-1:], saturated + int(np.count_nonzero(imu.saturated))
+                last_chunk = start + IMU_CHUNK_SAMPLES >= n_imu
+                while next_frame < len(kept):
+                    i = kept[next_frame]
+                    t_exp = float(schedule.t_exposure_imu_s[i])
+                    if t_exp > t_imu[-1] and not last_chunk:
+                        break
+                    writer.frame(float(schedule.t_stamp_cam_s[i]), render(t_exp))
+                    next_frame += 1
+                    if progress is not None:
+                        progress(next_frame, len(kept))
+            # 4. Calibration files and landmarks.
+            landmarks_W = scene_landmarks(sim.model, np.random.default_rng(landmark_seq), LANDMARK_COUNT)
+            writer.finish(imu_params.noise, imu_params.rate_hz, landmarks_W)
+        finally:
+            writer.close()
+            renderer.close()
     wall_s = time.perf_counter() - wall_start
     return {
         "frames": int(len(kept)),
         "imu_samples": int(n_imu),
-        "path_length_m": float(np.sum(np.linalg.norm(np.diff(truth.p_WB, axis=0), axis=1))),
+        "path_length_m": path_length_m,
         "seconds": duration_s,
         "scenario": name,
         "seed": int(seed),
         "realtime_factor": float(duration_s / wall_s),
-        "out": str(mav0.parent),
+        "out": str(Path(out_dir)),
         "dropped_frames": int(len(schedule) - len(kept)),
-        "saturated_samples": int(np.count_nonzero(imu.saturated)),
+        "saturated_samples": saturated,
+        "resolution": [int(cam_params.width), int(cam_params.height)],
+        "camera_rate_hz": float(cam_params.rate_hz),
+        "imu_rate_hz": float(imu_params.rate_hz),
     }

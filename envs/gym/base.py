@@ -159,6 +159,7 @@ class VioQuadEnv(gymnasium.Env):
         self._renderer = None
         self._imu: deque = deque(maxlen=cfg.imu_window)
         self._setpoint_cache: tuple[tuple, FlatOutput] | None = None
+        self._terminated = False
 
     @property
     def rig(self) -> ClosedLoopSim | None:
@@ -310,6 +311,7 @@ class VioQuadEnv(gymnasium.Env):
         self._t_task = 0.0
         self._prev_action = self._neutral.copy()
         self._imu.clear()
+        self._terminated = False
         self._collect_imu()
         self._update_target()
         return self._get_obs(), self._get_info({}, "")
@@ -332,6 +334,10 @@ class VioQuadEnv(gymnasium.Env):
         """Hold ``action`` for ``ctrl_dt``; returns ``(obs, reward, terminated, truncated, info)``."""
         if self._loop is None:
             raise RuntimeError("call reset() before step()")
+        if self._terminated:
+            raise RuntimeError(
+                "step() after the episode terminated: call reset() first (Gymnasium's contract)"
+            )
         a = self._check_action(action)
         loop = self._loop
         reason = ""
@@ -370,6 +376,7 @@ class VioQuadEnv(gymnasium.Env):
         self._prev_action = a
         reward = float(sum(components.values()))
         # Truncation is left to the TimeLimit wrapper set at registration.
+        self._terminated = bool(reason)
         return self._get_obs(), reward, bool(reason), False, self._get_info(components, reason)
 
     # ------------------------------------------------------------------ observation and info

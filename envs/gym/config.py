@@ -22,6 +22,68 @@ FAILURE_REASONS = ("crashed", "left_arena", "too_far", "diverged")
 """Termination reasons that cost the crash penalty (``success`` does not)."""
 
 
+# ---------------------------------------------------------------------------------------------- checks
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool | np.bool_
+    )
+
+
+def _check_number(cfg: object, name: str, low: float, strict: bool) -> None:
+    """``cfg.name`` is a finite number ``> low`` (``strict``) or ``>= low``; else a ValueError naming it."""
+    value = getattr(cfg, name)
+    rule = f"{'>' if strict else '>='} {low:g}"
+    ok = _is_number(value) and np.isfinite(value) and (value > low if strict else value >= low)
+    if not ok:
+        raise ValueError(f"{type(cfg).__name__}.{name} must be a finite number {rule}, got {value!r}")
+
+
+def _check_vector(cfg: object, name: str, size: int, low: float | None = None) -> None:
+    """``cfg.name`` is ``size`` finite numbers (each ``> low`` when given); else a ValueError naming it."""
+    value = getattr(cfg, name)
+    ok = isinstance(value, tuple | list | np.ndarray) and len(value) == size and all(map(_is_number, value))
+    ok = ok and bool(np.all(np.isfinite(np.asarray(value, dtype=float))))
+    ok = ok and (low is None or bool(np.all(np.asarray(value, dtype=float) > low)))
+    if not ok:
+        rule = f"{size} finite numbers" + ("" if low is None else f" > {low:g}")
+        raise ValueError(f"{type(cfg).__name__}.{name} must be {rule}, got {value!r}")
+
+
+def _check_int(cfg: object, name: str, low: int) -> None:
+    """``cfg.name`` is an integer ``>= low``; else a ValueError naming it."""
+    value = getattr(cfg, name)
+    if not (isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= low):
+        raise ValueError(f"{type(cfg).__name__}.{name} must be an integer >= {low}, got {value!r}")
+
+
+_POSITIVE = (
+    "ctrl_dt",
+    "inner_ctrl_dt",
+    "camera_rate_hz",
+    "takeoff_s",
+    "ground_init_max_s",
+    "max_target_distance_m",
+    "max_speed_m_s",
+    "max_yaw_rate_rad_s",
+)
+_NON_NEGATIVE = (
+    "start_position_sigma_m",
+    "start_velocity_sigma_m_s",
+    "start_tilt_sigma_rad",
+    "start_yaw_sigma_rad",
+    "init_attitude_sigma_rad",
+    "init_position_sigma_m",
+    "init_velocity_sigma_m_s",
+    "init_gyro_bias_sigma_rad_s",
+    "init_accel_bias_sigma_m_s2",
+    "arena_margin_m",
+    "position_range_m",
+)
+_PIXELS = ("camera_width", "camera_height", "render_width", "render_height")
+
+
 # ---------------------------------------------------------------------------------------------- configs
 
 
@@ -193,13 +255,28 @@ class VioEnvConfig:
                     f"{type(self).__name__}.{name}: unknown value {getattr(self, name)!r}; "
                     f"allowed: {', '.join(map(repr, allowed))}"
                 )
-        for name in ("ctrl_dt", "inner_ctrl_dt", "camera_rate_hz", "takeoff_s", "ground_init_max_s"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0.0):
-                raise ValueError(f"{type(self).__name__}.{name} must be positive and finite, got {value!r}")
-        if not (isinstance(self.imu_window, int) and self.imu_window >= 1):
+        for name in _POSITIVE:
+            _check_number(self, name, 0.0, strict=True)
+        for name in _NON_NEGATIVE:
+            _check_number(self, name, 0.0, strict=False)
+        for name in (*_PIXELS, "imu_window"):
+            _check_int(self, name, 1)
+        _check_vector(self, "start_p_W_m", 3)
+        _check_vector(self, "max_body_rate_rad_s", 3, low=0.0)
+        _check_vector(self, "rate_bandwidth_rad_s", 3, low=0.0)
+        lo, hi = (np.asarray(b, dtype=float) for b in SCENE_BOUNDS_M[self.scene])
+        half = float(np.min(hi - lo)) / 2.0
+        if not self.arena_margin_m < half:
             raise ValueError(
-                f"{type(self).__name__}.imu_window must be an integer >= 1, got {self.imu_window!r}"
+                f"{type(self).__name__}.arena_margin_m must be < {half:g} m (half the smallest extent of the "
+                f"{self.scene!r} scene), got {self.arena_margin_m!r}"
+            )
+        p = np.asarray(self.start_p_W_m, dtype=float)
+        a_lo, a_hi = lo + self.arena_margin_m, hi - self.arena_margin_m
+        if np.any(p < a_lo) or np.any(p > a_hi):
+            raise ValueError(
+                f"{type(self).__name__}.start_p_W_m {self.start_p_W_m!r} is outside the arena of the "
+                f"{self.scene!r} scene ({a_lo.tolist()} to {a_hi.tolist()} m)"
             )
         if not isinstance(self.randomization, DomainRandomization):
             raise ValueError(f"{type(self).__name__}.randomization must be a DomainRandomization")
@@ -233,6 +310,19 @@ class WaypointsEnvConfig(VioEnvConfig):
     reach_radius_m: float = 0.3
     max_target_distance_m: float = 8.0
 
+    def __post_init__(self) -> None:
+        """The shared checks, then the waypoint box and radius."""
+        super().__post_init__()
+        _check_int(self, "n_waypoints", 1)
+        _check_vector(self, "waypoint_low_W_m", 3)
+        _check_vector(self, "waypoint_high_W_m", 3)
+        if np.any(np.asarray(self.waypoint_low_W_m) > np.asarray(self.waypoint_high_W_m)):
+            raise ValueError(
+                f"WaypointsEnvConfig.waypoint_low_W_m {self.waypoint_low_W_m!r} must be <= waypoint_high_W_m "
+                f"{self.waypoint_high_W_m!r}"
+            )
+        _check_number(self, "reach_radius_m", 0.0, strict=True)
+
 
 @dataclass(frozen=True)
 class TrackEnvConfig(VioEnvConfig):
@@ -247,6 +337,13 @@ class TrackEnvConfig(VioEnvConfig):
     figure8_size_m: tuple[float, float] = (1.5, 0.75)
     figure8_period_s: float = 12.0
     figure8_ramp_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        """The shared checks, then the figure-8's size, period and ramp."""
+        super().__post_init__()
+        _check_vector(self, "figure8_size_m", 2, low=0.0)
+        _check_number(self, "figure8_period_s", 0.0, strict=True)
+        _check_number(self, "figure8_ramp_s", 0.0, strict=False)
 
 
 def make_config(

@@ -174,6 +174,9 @@ def fly(
     wall = time.perf_counter() - wall0
     loop.close()
     metrics = _metrics(log, seq.mission_t0_s, seq.init_t_s)
+    metrics["notes"] = _null_notes(
+        metrics, seq.init_t_s, seq.mission_t0_s, float(loop.t_s), crashed or diverged
+    )
     metrics.update(_blackout_metrics(log, rig.camera.blackout_intervals_s))
     metrics.update(
         {
@@ -196,6 +199,25 @@ def fly(
         }
     )
     return metrics, log
+
+
+def _null_notes(
+    metrics: dict, init_t_s: float | None, mission_t0_s: float | None, end_s: float, stopped: bool
+) -> list[str]:
+    """Why a tracking or estimation metric is None (``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``...)."""
+    if mission_t0_s is not None and metrics["hover_rms_m"] is not None:
+        return []
+    if stopped:
+        why = f"the flight stopped at {end_s:.2f} s (crash or divergence) before the mission started"
+    elif init_t_s is None:
+        why = f"the estimator did not initialize on the ground within the {end_s:.2f} s flown"
+    else:
+        why = (
+            f"the mission had not started when the flight ended at {end_s:.2f} s (initialized on the ground "
+            f"at {init_t_s:.2f} s, then a 3 s takeoff: fly longer, about 10.5 s plus the mission)"
+        )
+    keys = [k for k in ("hover_rms_m", "max_err_m", "ate_posyaw_m", "est_rms_m") if metrics.get(k) is None]
+    return [f"{', '.join(keys)}: null ({why})"] if keys else []
 
 
 def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, tr, thrusts) -> None:

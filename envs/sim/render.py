@@ -180,6 +180,26 @@ def camera_world_pose(data, cam_id: int) -> tuple[np.ndarray, np.ndarray]:
     return R_W_Cmujoco @ _R_CMUJOCO_COPENCV, data.cam_xpos[cam_id].copy()
 
 
+MAX_OFFSCREEN_PX = 4096
+"""Largest offscreen buffer side (px) :func:`ensure_offscreen_buffer` grows a model to."""
+
+
+def ensure_offscreen_buffer(model, width: int, height: int) -> None:
+    """Grow the model's offscreen buffer (``<global offwidth/offheight>``) to hold ``width`` x ``height``.
+
+    MuJoCo sizes its offscreen framebuffer from these fields when a renderer is created; the MJCF default
+    here is 752x480 (EuRoC's size). Call before creating an :class:`OffscreenRenderer` for a larger image.
+
+    Raises:
+        ValueError: A side that is not a positive integer or exceeds :data:`MAX_OFFSCREEN_PX`.
+    """
+    for what, value in (("width", width), ("height", height)):
+        if not (isinstance(value, int | np.integer) and 0 < value <= MAX_OFFSCREEN_PX):
+            raise ValueError(f"image {what} must be an integer in [1, {MAX_OFFSCREEN_PX}] px, got {value!r}")
+    model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), int(width))
+    model.vis.global_.offheight = max(int(model.vis.global_.offheight), int(height))
+
+
 def camera_calibration(
     model,
     camera_name: str,

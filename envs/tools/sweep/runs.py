@@ -249,7 +249,7 @@ def _record_eval(cfg: RunConfig, groups: dict[str, dict[str, Any]]) -> dict:
         raise ValueError(f"rig.* parameters apply to mode 'fly' only, got {sorted(groups['rig'])}")
     with tempfile.TemporaryDirectory(prefix="viotb-sweep-") as tmp:
         rec = record_scenario(
-            cfg.scenario, tmp, seed=cfg.seed, seconds=cfg.seconds, severity=cfg.severity, imu_name=cfg.imu
+            cfg.scenario, tmp, seed=cfg.seed, seconds=cfg.seconds, severity=cfg.severity, imu_preset=cfg.imu
         )
         opts = EvalOptions(
             estimator=cfg.estimator,

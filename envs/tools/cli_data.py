@@ -1,0 +1,137 @@
+"""``viotb record`` and ``viotb eval``: datasets in, metrics out (added to the app by :func:`register`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from viotb.envs.tools.cli_common import (
+    EXIT_DIVERGED,
+    check_out,
+    check_seconds,
+    choice_option,
+    emit,
+    estimator_option,
+    fail,
+    frontend_option,
+    overwrite_option,
+    progress,
+    quiet_option,
+    seed_option,
+)
+
+IMU_GAP_POLICIES = ("refuse", "bridge")
+"""``viotb.envs.data.validate.IMU_GAP_POLICIES`` (repeated so that ``--help`` stays fast; a test compares)."""
+
+
+def parse_resolution(text: str | None) -> tuple[int, int] | None:
+    """``"752x480"`` -> ``(752, 480)``; a typer error naming ``--resolution`` otherwise."""
+    if text is None:
+        return None
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts) or min(int(p) for p in parts) <= 0:
+        raise typer.BadParameter(f"expected WIDTHxHEIGHT in px, e.g. 752x480, got {text!r}")
+    return int(parts[0]), int(parts[1])
+
+
+def _positive_rate(value: float | None) -> float | None:
+    if value is not None and not (0.0 < value < float("inf")):
+        raise typer.BadParameter(f"must be a positive rate in Hz, got {value}")
+    return value
+
+
+def record(
+    scenario: str = typer.Argument(..., help="Scenario name (see `viotb scenarios`)."),
+    out: Path = typer.Option(..., "--out", help="Output folder (new or empty); a EuRoC ASL tree OUT/mav0."),
+    seed: int = seed_option(),
+    seconds: float | None = typer.Option(None, "--seconds", help="Duration (s); scenario default if unset."),
+    severity: float | None = typer.Option(None, "--severity", help="Severity of a fail-* scenario."),
+    resolution: str | None = typer.Option(
+        None,
+        "--resolution",
+        callback=parse_resolution,
+        help="Image size WxH in px (default 320x240; EuRoC: 752x480).",
+    ),
+    camera_rate: float | None = typer.Option(
+        None, "--camera-rate", callback=_positive_rate, help="Camera rate (Hz; default the scenario's, 20)."
+    ),
+    imu_rate: float | None = typer.Option(
+        None, "--imu-rate", callback=_positive_rate, help="IMU rate (Hz; default the IMU preset's, 200)."
+    ),
+    overwrite: bool = overwrite_option(),
+    quiet: bool = quiet_option(),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """Simulate a scenario open loop and write a EuRoC ASL dataset (atomically: complete or absent).
+
+    Size and rates are written into cam0/sensor.yaml and imu0/sensor.yaml.
+    """
+    from viotb.envs.data.record import record_scenario
+
+    check_seconds(seconds)
+    check_out(out, overwrite)
+    try:
+        with progress(f"record {scenario}", not quiet) as report:
+            result = record_scenario(
+                scenario,
+                out,
+                seed=seed,
+                seconds=seconds,
+                progress=report,
+                severity=severity,
+                resolution=resolution,  # type: ignore[arg-type]  (parsed by the callback)
+                camera_rate_hz=camera_rate,
+                imu_rate_hz=imu_rate,
+                overwrite=overwrite,
+            )
+    except (ValueError, FileNotFoundError) as exc:
+        fail(str(exc))
+    emit(result, as_json, f"recorded {scenario} -> {out}")
+
+
+def eval_(
+    dataset: Path = typer.Argument(..., help="EuRoC-layout folder (containing mav0/, or mav0 itself)."),
+    estimator: str = estimator_option(),
+    out: Path = typer.Option(
+        Path("viotb_out/eval"), "--out", help="Output folder (new or empty) for the TUM files."
+    ),
+    frontend: str = frontend_option(help_text="klt (images) or sim (recorded landmarks, fast)."),
+    max_frames: int | None = typer.Option(None, "--max-frames", min=0, help="Stop after this many frames."),
+    imu_gap_policy: str = choice_option(
+        "refuse",
+        "--imu-gap-policy",
+        "IMU gap policy",
+        IMU_GAP_POLICIES,
+        "What to do with an IMU gap over 5 nominal periods: refuse (an error naming file, lines, times) "
+        "or bridge (linear interpolation, reported in imu_gaps and notes).",
+    ),
+    overwrite: bool = overwrite_option(),
+    quiet: bool = quiet_option(),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
+) -> None:
+    """Run an estimator on a EuRoC folder, write TUM trajectories and print ATE/RPE/NEES/timing.
+
+    Exit status: 0 done; 2 bad input (the message names it); 3 the estimator diverged.
+
+    A diverged run still writes and prints its results up to the divergence (diverged: true, reason).
+    """
+    from viotb.envs.data.evaluate import NULL_REASONS, EvalOptions, evaluate_dataset
+
+    check_out(out, overwrite)
+    try:
+        opts = EvalOptions(
+            estimator=estimator, frontend=frontend, max_frames=max_frames, imu_gap_policy=imu_gap_policy
+        )
+        with progress(f"eval {estimator}", not quiet) as report:
+            result = evaluate_dataset(dataset, out, opts, report, overwrite=overwrite)
+    except (ValueError, FileNotFoundError) as exc:
+        fail(str(exc))
+    emit(result, as_json, f"{estimator} on {dataset} -> {out}", NULL_REASONS)
+    if result["diverged"]:
+        raise typer.Exit(code=EXIT_DIVERGED)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``record`` and ``eval`` to ``app``."""
+    app.command()(record)
+    app.command("eval")(eval_)
