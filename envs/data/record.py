@@ -26,7 +26,7 @@ from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
 from viotb.envs.sim.imu_model import ImuModel
-from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
+from viotb.models.constants import VEHICLE_BODIES
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
 
@@ -42,6 +42,7 @@ def record_scenario(
     progress: Callable[[float, float], None] | None = None,
     severity: float | None = None,
     imu_preset: str | None = None,
+    cameras: int | None = None,
 ) -> dict:
     """Simulate scenario ``name`` open loop and write a EuRoC ASL folder ``out_dir/mav0``.
 
@@ -54,6 +55,8 @@ def record_scenario(
         severity: For a ``fail-*`` scenario, its severity knob (``viotb.envs.scenarios.failures``); None =
             default.
         imu_preset: Record with this IMU preset instead of the scenario's (None: the scenario's).
+        cameras: Cameras to record, 1 (``cam0``) or 2 (``cam0`` and ``cam1``, a stereo rig's scenario only);
+            None = every camera of the scenario's rig.
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
@@ -63,8 +66,8 @@ def record_scenario(
         ValueError: Unknown scenario, a scenario without a scripted trajectory, or a bad duration.
     """
     os.environ.setdefault("MUJOCO_GL", "egl")
+    from viotb.envs.sim.camera_rig import CameraRig
     from viotb.envs.sim.landmarks import scene_landmarks  # (imports mujoco)
-    from viotb.envs.sim.render import OffscreenRenderer, camera_calibration
     from viotb.envs.sim.simulation import Simulation
 
     wall_start = time.perf_counter()
@@ -80,9 +83,14 @@ def record_scenario(
     trajectory = scenario.make_trajectory(duration_s)
     cam_params = scenario.camera
     imu_params = imu_preset(scenario.imu_preset)
+    rig_cameras = scenario.rig_cameras if cameras is None else scenario.rig_cameras[:cameras]
+    if cameras is not None and (cameras not in (1, 2) or len(rig_cameras) != cameras):
+        raise ValueError(
+            f"record_scenario: {name!r} has {len(scenario.rig_cameras)} camera(s), asked for {cameras}"
+        )
 
     # 1. Independent random streams.
-    imu_seq, drop_seq, pixel_seq, landmark_seq = np.random.SeedSequence(seed).spawn(4)
+    imu_seq, drop_seq, pixel_seq, landmark_seq, pixel1_seq = np.random.SeedSequence(seed).spawn(5)
 
     # 2. Truth at the IMU rate -> IMU readings and the true biases.
     n_imu = int(np.floor(duration_s * imu_params.rate_hz + 1e-9)) + 1
@@ -103,41 +111,22 @@ def record_scenario(
     # 4. Render at the exposure instants.
     sim = Simulation(scenario.vehicle, scenario.scene)
     is_headset = scenario.vehicle == "headset"
-    calib = camera_calibration(
+    rig = CameraRig(
         sim.model,
-        ONBOARD_CAMERA,
+        rig_cameras,
         VEHICLE_BODIES[scenario.vehicle],
-        cam_params.width,
-        cam_params.height,
-        cam_params.time_offset_s,
-        cam_params.rate_hz,
-    )
-    renderer = OffscreenRenderer(
-        sim.model,
-        cam_params.width,
-        cam_params.height,
-        ONBOARD_CAMERA,
-        pixel_noise_std=cam_params.pixel_noise_std,
-        rng=np.random.default_rng(pixel_seq),
+        cam_params,
+        [np.random.default_rng(pixel_seq), np.random.default_rng(pixel1_seq)],
     )
 
     def place_at(t_s: float) -> None:
         s = trajectory.sample(t_s)
         sim.set_pose(s.R_WB, s.p_WB, s.v_WB, s.omega_B, a_W=s.a_WB if is_headset else None)
 
-    blur_offsets_s = np.linspace(-0.5, 0.5, cam_params.blur_samples) * cam_params.exposure_s
-
-    def frames() -> Iterator[tuple[float, np.ndarray]]:
+    def frames() -> Iterator[tuple]:
         for done, i in enumerate(kept, start=1):
-            t_exp = float(schedule.t_exposure_imu_s[i])
-            if cam_params.exposure_s > 0.0:
-                image = renderer.render_gray_exposure(
-                    sim.data, lambda o, t=t_exp: place_at(t + o), blur_offsets_s
-                )
-            else:
-                place_at(t_exp)
-                image = renderer.render_gray(sim.data)
-            yield float(schedule.t_stamp_cam_s[i]), image
+            images = rig.render(sim.data, place_at, float(schedule.t_exposure_imu_s[i]))
+            yield (float(schedule.t_stamp_cam_s[i]), *images)
             if progress is not None:
                 progress(done, len(kept))
 
@@ -151,16 +140,18 @@ def record_scenario(
             out_dir,
             imu,
             frames(),
-            faults.told_calibration(calib),  # a wrong calibration file when the scenario says so
+            faults.told_calibration(rig.calibs[0]),  # a wrong calibration file when the scenario says so
             imu_params.noise,
             groundtruth,
             gyro_bias,
             accel_bias,
             landmarks_W,
             imu_rate_hz=imu_params.rate_hz,
+            calib_right=faults.told_calibration(rig.calibs[1]) if len(rig) == 2 else None,
+            exposure_s=cam_params.exposure_s if scenario.camera_names else None,
         )
     finally:
-        renderer.close()
+        rig.close()
     wall_s = time.perf_counter() - wall_start
     return {
         "frames": int(len(kept)),
@@ -173,4 +164,5 @@ def record_scenario(
         "out": str(mav0.parent),
         "dropped_frames": int(len(schedule) - len(kept)),
         "saturated_samples": int(np.count_nonzero(imu.saturated)),
+        "cameras": len(rig),
     }
