@@ -110,12 +110,15 @@ def eval_(
     out: Path = typer.Option(Path("viotb_out/eval"), "--out", help="Output folder for the TUM files."),
     frontend: str = typer.Option("klt", "--frontend", help="klt (images) | sim (recorded landmarks, fast)."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    cameras: int = typer.Option(
+        1, "--cameras", min=1, max=2, help="1 (cam0, default) | 2 (cam0 + cam1 of a stereo folder)."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Run an estimator on a EuRoC folder, write TUM trajectories and print ATE/RPE/NEES/timing."""
     from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 
-    opts = EvalOptions(estimator=estimator, frontend=frontend, max_frames=max_frames)
+    opts = EvalOptions(estimator=estimator, frontend=frontend, max_frames=max_frames, cameras=cameras)
     try:
         with _progress(f"eval {estimator}", not as_json) as progress:
             result = evaluate_dataset(dataset, out, opts, progress)
