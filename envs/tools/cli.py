@@ -16,6 +16,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from viotb.envs.tools.headset_cli import register as register_headset
 from viotb.envs.tools.sweep.cli import register as register_sweep
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="vio-testbed: VIO in the loop.")
@@ -289,6 +290,7 @@ def failures(
 
 
 register_sweep(app)  # viotb sweep, viotb sweep-report
+register_headset(app)  # viotb headset
 
 
 def main() -> None:
