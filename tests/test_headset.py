@@ -1,4 +1,4 @@
-"""Tests of the headset rig: stereo recordings, equidistant yaml, head motions, prediction, ``viotb headset``."""
+"""Tests of the headset rig: stereo recordings, equidistant yaml, head motions, prediction, viotb headset."""
 
 from __future__ import annotations
 
