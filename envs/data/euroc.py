@@ -4,16 +4,19 @@ Layout (Burri et al., "The EuRoC micro aerial vehicle datasets", IJRR 2016)::
 
     mav0/cam0/data/<t_ns>.png           8-bit grayscale images
     mav0/cam0/data.csv                  #timestamp [ns],filename
-    mav0/cam0/sensor.yaml               intrinsics [fu, fv, cu, cv], radtan distortion, T_BS, rate_hz
+    mav0/cam0/sensor.yaml               intrinsics [fu, fv, cu, cv], radtan or equi distortion, T_BS, rate_hz
+    mav0/cam1/...                       the right camera of a stereo rig, same layout, its own T_BS (optional)
     mav0/imu0/data.csv                  #timestamp [ns],w_RS_S_x [rad s^-1],...,a_RS_S_z [m s^-2]
     mav0/imu0/sensor.yaml               Kalibr noise densities, rate_hz
     mav0/state_groundtruth_estimate0/data.csv   t, p xyz, q wxyz, v xyz, bw xyz, ba xyz (optional)
     mav0/sim_landmarks0/data.csv        #id,p_x [m],p_y [m],p_z [m] (our extension, optional)
 
-``sensor.yaml`` files start with OpenCV's ``%YAML:1.0`` line, which PyYAML rejects; it is stripped before
-parsing. The camera clock offset, when non-zero, is stored as Kalibr's ``timeshift_cam_imu``
-(``t_imu = t_cam + timeshift_cam_imu``). Timestamps are integer nanoseconds in files and float64 seconds
-(``t_ns * 1e-9``) in memory; the integer stamps are kept as well for exact round trips.
+The camera model is read with :func:`viotb.vio.camera.camera_from_kalibr`, so Kalibr ``pinhole-radtan`` and
+``pinhole-equi`` (TUM-VI style fisheye in EuRoC layout) both load. ``sensor.yaml`` files start with
+OpenCV's ``%YAML:1.0`` line, which PyYAML rejects; it is stripped before parsing. The camera clock offset,
+when non-zero, is stored as Kalibr's ``timeshift_cam_imu`` (``t_imu = t_cam + timeshift_cam_imu``).
+Timestamps are integer nanoseconds in files and float64 seconds (``t_ns * 1e-9``) in memory; the integer
+stamps are kept as well for exact round trips.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import cv2
 import numpy as np
 import yaml
 from viotb.envs.data.validate import check_camera_ranges, check_imu_ranges
-from viotb.vio.camera import CameraCalibration, PinholeCamera
+from viotb.vio.camera import CameraCalibration, camera_from_kalibr
 from viotb.vio.types import ImuNoise, ImuSeries, TrajectoryArrays
 
 IMU_HEADER = (
@@ -61,6 +64,10 @@ class EurocDataset:
         imu_t_ns: IMU stamps (ns), shape (N,), int64.
         cam_t_ns: Camera stamps (ns), shape (F,), int64.
         gt_t_ns: Ground-truth stamps (ns), shape (M,), int64, or None.
+        calib_right: Calibration of ``cam1`` (its own ``T_BS``), or None when the folder has no ``cam1``.
+        cam1_t_s: ``cam1`` stamps (s, camera clock), shape (F1,), or None.
+        cam1_t_ns: ``cam1`` stamps (ns), int64, or None.
+        image_paths_right: PNG path of each ``cam1`` frame (empty without ``cam1``).
     """
 
     root: Path
@@ -77,6 +84,22 @@ class EurocDataset:
     imu_t_ns: np.ndarray
     cam_t_ns: np.ndarray
     gt_t_ns: np.ndarray | None
+    calib_right: CameraCalibration | None = None
+    cam1_t_s: np.ndarray | None = None
+    cam1_t_ns: np.ndarray | None = None
+    image_paths_right: tuple[Path, ...] = ()
+
+    @property
+    def has_stereo(self) -> bool:
+        """True when the folder has a ``cam1``."""
+        return self.calib_right is not None
+
+    def right_index(self, index: int) -> int | None:
+        """Index of the ``cam1`` frame stamped like ``cam0`` frame ``index`` (same ns), or None."""
+        if self.cam1_t_ns is None:
+            return None
+        j = int(np.searchsorted(self.cam1_t_ns, self.cam_t_ns[index]))
+        return j if j < len(self.cam1_t_ns) and self.cam1_t_ns[j] == self.cam_t_ns[index] else None
 
     def __len__(self) -> int:
         """Number of camera frames."""
@@ -161,17 +184,10 @@ def _yaml_number(data: dict, path: Path, key: str) -> float:
 
 def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
     data = _read_yaml(path)
-    model = data.get("camera_model", "pinhole")
-    if model != "pinhole":
-        raise ValueError(f"{path}: camera_model must be 'pinhole', got {model!r}")
-    dist_model = data.get("distortion_model", "radial-tangential")
-    if dist_model not in ("radial-tangential", "radtan", "plumb_bob"):
-        raise ValueError(f"{path}: distortion_model must be 'radial-tangential', got {dist_model!r}")
-    fu, fv, cu, cv = _yaml_field(data, path, "intrinsics", 4)  # type: ignore[misc]
-    dist = tuple(_yaml_field(data, path, "distortion_coefficients", 4))  # type: ignore[arg-type]
-    width, height = _yaml_field(data, path, "resolution", 2)  # type: ignore[misc]
-    if width != int(width) or height != int(height) or width <= 0 or height <= 0:
-        raise ValueError(f"{path}: field 'resolution' must be 2 positive integers, got {[width, height]}")
+    fields = {
+        k: _yaml_field(data, path, k, n) for k, n in (("intrinsics", 4), ("resolution", 2)) if k in data
+    }
+    camera = camera_from_kalibr({**data, **fields}, str(path))
     t_bs = _yaml_field(data, path, "T_BS")
     if not isinstance(t_bs, dict):
         raise ValueError(f"{path}: field 'T_BS' must be a mapping with 'data', got {t_bs!r}")
@@ -183,10 +199,10 @@ def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
         raise ValueError(f"{path}: T_BS last row must be [0, 0, 0, 1], got {T[3].tolist()}")
     rate_hz = _yaml_number(data, path, "rate_hz")
     offset_s = _yaml_number(data, path, "timeshift_cam_imu") if "timeshift_cam_imu" in data else 0.0
-    check_camera_ranges(path, (fu, fv, cu, cv), (int(width), int(height)), rate_hz, offset_s)
-    camera = PinholeCamera(int(width), int(height), fu, fv, cu, cv, dist)  # type: ignore[arg-type]
+    intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
+    check_camera_ranges(path, intrinsics, (camera.width, camera.height), rate_hz, offset_s)
     calib = CameraCalibration(camera, R_BC.copy(), T[:3, 3].copy(), offset_s, rate_hz)
-    return calib, int(width), int(height)
+    return calib, camera.width, camera.height
 
 
 def _read_imu_yaml(path: Path) -> tuple[ImuNoise, float]:
@@ -268,6 +284,20 @@ def _ns_to_s(t_ns: np.ndarray) -> np.ndarray:
     return t_ns.astype(np.float64) * 1e-9
 
 
+def _read_camera_csv(root: Path, cam: str) -> tuple[np.ndarray, tuple[Path, ...]]:
+    """Stamps (ns) and image paths of ``root/cam/data.csv`` (every image must exist)."""
+    cam_csv = root / cam / "data.csv"
+    cam_lines, cam_rows = _read_rows(cam_csv, 2)
+    cam_t_ns = _parse_ns(cam_csv, cam_lines, [r[0] for r in cam_rows])
+    image_paths = []
+    for line_no, (_, name) in zip(cam_lines, cam_rows, strict=True):
+        image = root / cam / "data" / name
+        if not image.is_file():
+            raise FileNotFoundError(f"{cam_csv}, line {line_no}: image file not found: {image}")
+        image_paths.append(image)
+    return cam_t_ns, tuple(image_paths)
+
+
 def read_euroc(path: Path | str) -> EurocDataset:
     """Load a EuRoC ASL folder (the folder holding ``mav0``, or ``mav0`` itself).
 
@@ -288,15 +318,12 @@ def read_euroc(path: Path | str) -> EurocDataset:
         np.zeros(len(imu_t_ns), dtype=bool),
     )
 
-    cam_csv = root / "cam0" / "data.csv"
-    cam_lines, cam_rows = _read_rows(cam_csv, 2)
-    cam_t_ns = _parse_ns(cam_csv, cam_lines, [r[0] for r in cam_rows])
-    image_paths = []
-    for line_no, (_, name) in zip(cam_lines, cam_rows, strict=True):
-        image = root / "cam0" / "data" / name
-        if not image.is_file():
-            raise FileNotFoundError(f"{cam_csv}, line {line_no}: image file not found: {image}")
-        image_paths.append(image)
+    cam_t_ns, image_paths = _read_camera_csv(root, "cam0")
+    calib_right = cam1_t_ns = None
+    image_paths_right: tuple[Path, ...] = ()
+    if (root / "cam1" / "sensor.yaml").is_file():
+        calib_right, _, _ = _read_camera_yaml(root / "cam1" / "sensor.yaml")
+        cam1_t_ns, image_paths_right = _read_camera_csv(root, "cam1")
 
     groundtruth = gt_bw = gt_ba = gt_t_ns = None
     gt_path = root / "state_groundtruth_estimate0" / "data.csv"
@@ -323,7 +350,7 @@ def read_euroc(path: Path | str) -> EurocDataset:
         root=root,
         imu=imu,
         cam_t_s=_ns_to_s(cam_t_ns),
-        image_paths=tuple(image_paths),
+        image_paths=image_paths,
         calib=calib,
         imu_noise=imu_noise,
         imu_rate_hz=imu_rate_hz,
@@ -334,20 +361,35 @@ def read_euroc(path: Path | str) -> EurocDataset:
         imu_t_ns=imu_t_ns,
         cam_t_ns=cam_t_ns,
         gt_t_ns=gt_t_ns,
+        calib_right=calib_right,
+        cam1_t_s=None if cam1_t_ns is None else _ns_to_s(cam1_t_ns),
+        cam1_t_ns=cam1_t_ns,
+        image_paths_right=image_paths_right,
     )
 
 
-def load_image(dataset: EurocDataset, index: int) -> np.ndarray:
-    """Frame ``index`` as a grayscale uint8 image, shape (H, W), checked against ``cam0/sensor.yaml``.
+def load_image(dataset: EurocDataset, index: int, camera: int = 0) -> np.ndarray:
+    """Frame ``index`` of ``cam0`` (``camera=0``) or ``cam1`` (``camera=1``) as grayscale uint8, shape (H, W).
+
+    The size is checked against that camera's ``sensor.yaml``.
 
     Raises:
         IndexError: Index out of range.
         FileNotFoundError: The PNG is missing.
-        ValueError: The PNG cannot be decoded, is not 8-bit, or its size differs from the YAML resolution.
+        ValueError: No such camera, the PNG cannot be decoded, is not 8-bit, or its size differs from the YAML
+            resolution.
     """
-    if not -len(dataset) <= index < len(dataset):
-        raise IndexError(f"frame index {index} out of range for {len(dataset)} frames in {dataset.root}")
-    path = dataset.image_paths[index]
+    if camera not in (0, 1):
+        raise ValueError(f"camera must be 0 or 1, got {camera!r}")
+    if camera == 1 and dataset.calib_right is None:
+        raise ValueError(f"{dataset.root}: no cam1 in this dataset (mono)")
+    paths = dataset.image_paths if camera == 0 else dataset.image_paths_right
+    calib = dataset.calib if camera == 0 else dataset.calib_right
+    if not -len(paths) <= index < len(paths):
+        raise IndexError(
+            f"frame index {index} out of range for {len(paths)} cam{camera} frames in {dataset.root}"
+        )
+    path = paths[index]
     if not path.is_file():
         raise FileNotFoundError(f"image file not found: {path}")
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -358,10 +400,10 @@ def load_image(dataset: EurocDataset, index: int) -> np.ndarray:
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)
-    cam = dataset.calib.camera
+    cam = calib.camera
     if image.shape != (cam.height, cam.width):
         raise ValueError(
             f"{path}: image size {image.shape[1]}x{image.shape[0]} does not match the resolution "
-            f"{cam.width}x{cam.height} in cam0/sensor.yaml"
+            f"{cam.width}x{cam.height} in cam{camera}/sensor.yaml"
         )
     return image

@@ -24,19 +24,36 @@ class EurocStreamWriter:
     Args:
         out_dir: Output folder (``mav0`` is created inside).
         calib: Camera calibration (for the frame size check and ``cam0/sensor.yaml``).
+        calib_right: Calibration of a stereo rig's right camera (``cam1``, same stamps); None = mono.
+        exposure_s: Shutter time (s) written to the cameras' ``sensor.yaml`` (``exposure_time_s``); None = not
+            written.
     """
 
-    def __init__(self, out_dir: Path | str, calib: CameraCalibration) -> None:
+    def __init__(
+        self,
+        out_dir: Path | str,
+        calib: CameraCalibration,
+        calib_right: CameraCalibration | None = None,
+        exposure_s: float | None = None,
+    ) -> None:
         """Create the folders and open the CSV files with their headers."""
         self.mav0 = Path(out_dir) / "mav0"
-        self._calib = calib
-        for sub in ("imu0", "cam0/data", "state_groundtruth_estimate0"):
+        self._calibs = [calib] if calib_right is None else [calib, calib_right]
+        self._exposure_s = exposure_s
+        for sub in (
+            "imu0",
+            "state_groundtruth_estimate0",
+            *(f"cam{k}/data" for k in range(len(self._calibs))),
+        ):
             (self.mav0 / sub).mkdir(parents=True, exist_ok=True)
         self._imu = (self.mav0 / "imu0" / "data.csv").open("w", newline="")
-        self._cam = (self.mav0 / "cam0" / "data.csv").open("w", newline="")
+        self._cams = [
+            (self.mav0 / f"cam{k}" / "data.csv").open("w", newline="") for k in range(len(self._calibs))
+        ]
         self._gt = (self.mav0 / "state_groundtruth_estimate0" / "data.csv").open("w", newline="")
         self._imu.write(IMU_HEADER + "\n")
-        self._cam.write(CAM_HEADER + "\n")
+        for cam in self._cams:
+            cam.write(CAM_HEADER + "\n")
         self._gt.write(GT_HEADER + "\n")
         self._last_ns = {"imu": -1, "cam": -1, "gt": -1}
         self.frames = 0
@@ -70,27 +87,31 @@ class EurocStreamWriter:
         t_ns = self._stamps(chunk.t_s, "gt")
         self._gt.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(t_ns, table, strict=True))
 
-    def frame(self, t_cam_s: float, image: np.ndarray) -> None:
-        """Write one image (uint8, the calibration's size) stamped ``t_cam_s`` (camera clock)."""
-        cam = self._calib.camera
+    def frame(self, t_cam_s: float, *images: np.ndarray) -> None:
+        """One image per camera (uint8, of the calibration size), all stamped ``t_cam_s`` (camera clock)."""
+        if len(images) != len(self._calibs):
+            raise ValueError(f"EurocStreamWriter: {len(self._calibs)} image(s) per frame, got {len(images)}")
         t_ns = int(self._stamps(np.array([t_cam_s]), "cam")[0])
-        image = np.asarray(image)
-        if image.dtype != np.uint8 or image.shape != (cam.height, cam.width):
-            raise ValueError(
-                f"EurocStreamWriter: frame {self.frames} must be uint8 of shape ({cam.height}, {cam.width}), "
-                f"got {image.dtype} {image.shape}"
-            )
-        path = self.mav0 / "cam0" / "data" / f"{t_ns}.png"
-        if not cv2.imwrite(str(path), image):
-            raise ValueError(f"EurocStreamWriter: could not write {path}")
-        self._cam.write(f"{t_ns},{path.name}\n")
+        for k, (image, calib, csv) in enumerate(zip(images, self._calibs, self._cams, strict=True)):
+            cam = calib.camera
+            image = np.asarray(image)
+            if image.dtype != np.uint8 or image.shape != (cam.height, cam.width):
+                raise ValueError(
+                    f"EurocStreamWriter: frame {self.frames} of cam{k} must be uint8 of shape "
+                    f"({cam.height}, {cam.width}), got {image.dtype} {image.shape}"
+                )
+            path = self.mav0 / f"cam{k}" / "data" / f"{t_ns}.png"
+            if not cv2.imwrite(str(path), image):
+                raise ValueError(f"EurocStreamWriter: could not write {path}")
+            csv.write(f"{t_ns},{path.name}\n")
         self.frames += 1
 
     def finish(self, imu_noise: ImuNoise, imu_rate_hz: float, landmarks_W: np.ndarray | None = None) -> Path:
         """Write the ``sensor.yaml`` files and the landmarks, close the files; returns ``mav0``."""
         self.close()
         _write_imu_yaml(self.mav0 / "imu0" / "sensor.yaml", imu_noise, imu_rate_hz)
-        _write_camera_yaml(self.mav0 / "cam0" / "sensor.yaml", self._calib)
+        for k, calib in enumerate(self._calibs):
+            _write_camera_yaml(self.mav0 / f"cam{k}" / "sensor.yaml", calib, self._exposure_s)
         (self.mav0 / "state_groundtruth_estimate0" / "sensor.yaml").write_text(
             "%YAML:1.0\nsensor_type: visual-inertial\ncomment: vio-testbed simulation ground truth (exact).\n"
         )
@@ -104,7 +125,7 @@ class EurocStreamWriter:
 
     def close(self) -> None:
         """Close the CSV files (idempotent)."""
-        for handle in (self._imu, self._cam, self._gt):
+        for handle in (self._imu, *self._cams, self._gt):
             handle.close()
 
     def __enter__(self) -> EurocStreamWriter:

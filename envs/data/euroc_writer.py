@@ -1,4 +1,8 @@
-"""EuRoC ASL dataset folders: the writer (``viotb record``), in the layout that :mod:`.euroc` reads."""
+"""EuRoC ASL dataset folders: the writer (``viotb record``), in the layout that :mod:`.euroc` reads.
+
+A stereo rig writes ``cam1`` beside ``cam0`` exactly as the stereo EuRoC folders do: the same stamps, its own
+``sensor.yaml`` with its own ``T_BS``.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from viotb.envs.data.euroc import CAM_HEADER, GT_HEADER, IMU_HEADER, LANDMARK_HEADER, NS_PER_S
-from viotb.vio.camera import CameraCalibration
+from viotb.vio.camera import CameraCalibration, camera_to_kalibr
 from viotb.vio.types import ImuNoise, ImuSeries, TrajectoryArrays
 
 
@@ -36,8 +40,8 @@ def _yaml_list(values: Iterable[float]) -> str:
     return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 
 
-def _write_camera_yaml(path: Path, calib: CameraCalibration) -> None:
-    cam = calib.camera
+def _write_camera_yaml(path: Path, calib: CameraCalibration, exposure_s: float | None = None) -> None:
+    fields = camera_to_kalibr(calib.camera)
     T = np.eye(4)
     T[:3, :3] = calib.R_BC
     T[:3, 3] = calib.p_BC
@@ -52,14 +56,20 @@ def _write_camera_yaml(path: Path, calib: CameraCalibration) -> None:
         f"  data: [{rows}]\n\n"
         "# Camera specific definitions.\n"
         f"rate_hz: {float(calib.rate_hz)!r}\n"
-        f"resolution: [{cam.width}, {cam.height}]\n"
-        "camera_model: pinhole\n"
-        f"intrinsics: {_yaml_list([cam.fx, cam.fy, cam.cx, cam.cy])} #fu, fv, cu, cv\n"
-        "distortion_model: radial-tangential\n"
-        f"distortion_coefficients: {_yaml_list(cam.distortion)}\n"
+        f"resolution: [{fields['resolution'][0]}, {fields['resolution'][1]}]\n"
+        f"camera_model: {fields['camera_model']}\n"
+        f"intrinsics: {_yaml_list(fields['intrinsics'])} #fu, fv, cu, cv\n"
+        f"distortion_model: {fields['distortion_model']}\n"
+        f"distortion_coefficients: {_yaml_list(fields['distortion_coefficients'])}\n"
         "# Clock offset (Kalibr convention): t_imu = t_cam + timeshift_cam_imu [s]\n"
         f"timeshift_cam_imu: {float(calib.time_offset_s)!r}\n"
     )
+    if exposure_s is not None:
+        text += (
+            "# Global shutter; every pixel integrates over the exposure, centred on the stamp [s]\n"
+            "shutter: global\n"
+            f"exposure_time_s: {float(exposure_s)!r}\n"
+        )
     path.write_text(text)
 
 
@@ -85,7 +95,7 @@ def _write_imu_yaml(path: Path, noise: ImuNoise, rate_hz: float) -> None:
 def write_euroc(
     out_dir: Path | str,
     imu: ImuSeries,
-    frames: Iterable[tuple[float, np.ndarray]],
+    frames: Iterable[tuple],
     calib: CameraCalibration,
     imu_noise: ImuNoise,
     groundtruth: TrajectoryArrays | None = None,
@@ -93,6 +103,8 @@ def write_euroc(
     gt_accel_bias: np.ndarray | None = None,
     landmarks_W: np.ndarray | None = None,
     imu_rate_hz: float | None = None,
+    calib_right: CameraCalibration | None = None,
+    exposure_s: float | None = None,
 ) -> Path:
     """Write a EuRoC ASL tree under ``out_dir/mav0`` and return the ``mav0`` path.
 
@@ -100,7 +112,8 @@ def write_euroc(
         out_dir: Output folder (created).
         imu: IMU readings (times >= 0 s, strictly increasing).
         frames: ``(t_cam_s, image)`` pairs in time order; images (H, W) uint8 of the calibration's size.
-            Consumed lazily, so a generator can render frame by frame.
+            Consumed lazily, so a generator can render frame by frame. With ``calib_right``:
+            ``(t_cam_s, image_left, image_right)`` triples, written to ``cam0`` and ``cam1`` with one stamp.
         calib: Camera calibration (cam0 ``sensor.yaml``).
         imu_noise: Densities for ``imu0/sensor.yaml``.
         groundtruth: Poses of B in W with velocities (zeros are written when ``v_WB`` is None).
@@ -108,10 +121,12 @@ def write_euroc(
         gt_accel_bias: True accelerometer bias (m/s^2), shape (M, 3); zeros if None.
         landmarks_W: Landmark positions (m), shape (L, 3), written to ``sim_landmarks0/data.csv``.
         imu_rate_hz: Nominal IMU rate; default from the median sample spacing.
+        calib_right: Calibration of the right camera (``cam1/sensor.yaml``); None = mono.
+        exposure_s: Shutter time (s) written to the cameras' ``sensor.yaml`` (``exposure_time_s``); None =
+            not recorded.
     """
     mav0 = Path(out_dir) / "mav0"
-    imu_dir, cam_dir = mav0 / "imu0", mav0 / "cam0"
-    (cam_dir / "data").mkdir(parents=True, exist_ok=True)
+    imu_dir = mav0 / "imu0"
     imu_dir.mkdir(parents=True, exist_ok=True)
 
     imu_t_ns = _to_ns(imu.t_s, "IMU")
@@ -128,27 +143,42 @@ def write_euroc(
     if imu_rate_hz is None:
         imu_rate_hz = float(1.0 / np.median(np.diff(imu.t_s))) if n > 1 else 200.0
     _write_imu_yaml(imu_dir / "sensor.yaml", imu_noise, imu_rate_hz)
-    _write_camera_yaml(cam_dir / "sensor.yaml", calib)
+    calibs = [calib] if calib_right is None else [calib, calib_right]
+    cam_dirs = [mav0 / f"cam{k}" for k in range(len(calibs))]
+    for c, d in zip(calibs, cam_dirs, strict=True):
+        (d / "data").mkdir(parents=True, exist_ok=True)
+        _write_camera_yaml(d / "sensor.yaml", c, exposure_s)
 
-    cam = calib.camera
     last_ns = -1
-    with (cam_dir / "data.csv").open("w", newline="") as handle:
-        handle.write(CAM_HEADER + "\n")
-        for i, (t_s, image) in enumerate(frames):
+    handles = [(d / "data.csv").open("w", newline="") for d in cam_dirs]
+    try:
+        for handle in handles:
+            handle.write(CAM_HEADER + "\n")
+        for i, item in enumerate(frames):
+            t_s, images = item[0], item[1:]
+            if len(images) != len(calibs):
+                raise ValueError(
+                    f"write_euroc: frame {i} carries {len(images)} image(s) for {len(calibs)} camera(s)"
+                )
             t_ns = int(_to_ns(np.array([t_s]), "camera")[0])
             if t_ns <= last_ns:
                 raise ValueError(f"write_euroc: camera times must strictly increase, frame {i} at {t_s} s")
-            image = np.asarray(image)
-            if image.dtype != np.uint8 or image.shape != (cam.height, cam.width):
-                raise ValueError(
-                    f"write_euroc: frame {i} must be uint8 of shape ({cam.height}, {cam.width}), "
-                    f"got {image.dtype} {image.shape}"
-                )
-            name = f"{t_ns}.png"
-            if not cv2.imwrite(str(cam_dir / "data" / name), image):
-                raise ValueError(f"write_euroc: could not write {cam_dir / 'data' / name}")
-            handle.write(f"{t_ns},{name}\n")
+            for k, (image, c, d, handle) in enumerate(zip(images, calibs, cam_dirs, handles, strict=True)):
+                image = np.asarray(image)
+                cam = c.camera
+                if image.dtype != np.uint8 or image.shape != (cam.height, cam.width):
+                    raise ValueError(
+                        f"write_euroc: frame {i}{' of cam1' if k else ''} must be uint8 of shape "
+                        f"({cam.height}, {cam.width}), got {image.dtype} {image.shape}"
+                    )
+                name = f"{t_ns}.png"
+                if not cv2.imwrite(str(d / "data" / name), image):
+                    raise ValueError(f"write_euroc: could not write {d / 'data' / name}")
+                handle.write(f"{t_ns},{name}\n")
             last_ns = t_ns
+    finally:
+        for handle in handles:
+            handle.close()
 
     if groundtruth is not None:
         gt_dir = mav0 / "state_groundtruth_estimate0"

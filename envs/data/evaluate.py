@@ -56,6 +56,9 @@ class EvalOptions:
             nominal periods: ``refuse`` (a ValueError naming file, lines and times) or ``bridge`` (linear
             interpolation at the nominal rate, reported in ``imu_gaps`` and ``notes``).
         imu_gap_tolerance_periods: Longest normal spacing of IMU samples, in nominal periods (> 1).
+        cameras: 1 (``cam0`` only, the default, so results on stereo folders match earlier runs) or 2
+            (``cam0`` and ``cam1``: ``calib_right`` to the estimator, ``image_right`` / ``features_right``
+            in each frame).
     """
 
     estimator: str = "msckf"
@@ -65,6 +68,7 @@ class EvalOptions:
     max_frames: int | None = None
     msckf: MsckfParams | None = None
     window: WindowParams | None = None
+    cameras: int = 1
     imu_gap_policy: str = "refuse"
     imu_gap_tolerance_periods: float = 5.0
 
@@ -78,6 +82,8 @@ class EvalOptions:
             )
         if not self.imu_gap_tolerance_periods > 1.0:
             raise ValueError(f"imu_gap_tolerance_periods must be > 1, got {self.imu_gap_tolerance_periods!r}")
+        if self.cameras not in (1, 2):
+            raise ValueError(f"cameras must be 1 or 2, got {self.cameras!r}")
 
 
 def _interpolate_pose(gt: TrajectoryArrays, t_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -103,9 +109,13 @@ def _truth_estimate(ds: EurocDataset, t_s: float) -> StateEstimate:
 
 
 def _frame(ds: EurocDataset, i: int, opts: EvalOptions, rng: np.random.Generator) -> CameraFrame:
-    """Camera frame ``i``: the image, or simulated features from the dataset's landmarks."""
+    """Camera frame ``i``: the image(s), or simulated features from the dataset's landmarks."""
     t_cam = float(ds.cam_t_s[i])
+    j = ds.right_index(i) if opts.cameras == 2 else None
     if opts.frontend != "sim":
+        if opts.cameras == 2:
+            right = None if j is None else load_image(ds, j, camera=1)
+            return CameraFrame(t_s=t_cam, image=load_image(ds, i), image_right=right)
         return CameraFrame(t_s=t_cam, image=load_image(ds, i))
     from viotb.envs.sim.landmarks import project_landmarks
 
@@ -115,10 +125,16 @@ def _frame(ds: EurocDataset, i: int, opts: EvalOptions, rng: np.random.Generator
             "use --frontend klt on real data"
         )
     R_WB, p_WB = _interpolate_pose(ds.groundtruth, t_cam + ds.calib.time_offset_s)
-    R_WC = R_WB @ ds.calib.R_BC
-    p_WC = p_WB + R_WB @ ds.calib.p_BC
-    obs = project_landmarks(ds.landmarks_W, R_WC, p_WC, ds.calib.camera, rng, opts.sim_pixel_sigma_px)
-    return CameraFrame(t_s=t_cam, features=obs)
+    observations = []
+    for calib in [ds.calib] + ([ds.calib_right] if opts.cameras == 2 else []):
+        R_WC = R_WB @ calib.R_BC
+        p_WC = p_WB + R_WB @ calib.p_BC
+        observations.append(
+            project_landmarks(ds.landmarks_W, R_WC, p_WC, calib.camera, rng, opts.sim_pixel_sigma_px)
+        )
+    if opts.cameras == 2:
+        return CameraFrame(t_s=t_cam, features=observations[0], features_right=observations[1])
+    return CameraFrame(t_s=t_cam, features=observations[0])
 
 
 def usable_frames(ds: EurocDataset, opts: EvalOptions) -> tuple[int, int]:
@@ -144,6 +160,12 @@ def run_estimator(
         (ms), and per-frame health records (dicts with t_s, tracked_features, updated_features,
         chi2_rejections, diverged, reason, conditions).
     """
+    if opts.cameras not in (1, 2):
+        raise ValueError(f"cameras must be 1 or 2, got {opts.cameras}")
+    if opts.cameras == 2 and not ds.has_stereo:
+        raise ValueError(f"{ds.root}: --cameras 2 needs a cam1 folder (this dataset is mono)")
+    # The stereo keyword goes only to a stereo run, so mono runs do not depend on the stereo estimators.
+    stereo = {"calib_right": ds.calib_right} if opts.cameras == 2 else {}
     est = make_estimator(
         opts.estimator,
         ds.calib,
@@ -151,6 +173,7 @@ def run_estimator(
         frontend=opts.frontend,
         params=opts.msckf,
         window_params=opts.window,
+        **stereo,
     )
     if opts.estimator == "ground-truth" and ds.groundtruth is None:
         raise ValueError(
@@ -282,6 +305,7 @@ def evaluate_dataset(
             "dataset": str(dataset_dir),
             "estimator": opts.estimator,
             "frontend": opts.frontend,
+            "cameras": opts.cameras,
             "frames": len(ms),
             "estimated_frames": len(estimates),
             "frames_skipped_before_imu": first,

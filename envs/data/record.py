@@ -32,7 +32,7 @@ from viotb.envs.sim.camera_timing import frame_schedule
 from viotb.envs.sim.imu_model import ImuModel
 from viotb.envs.sim.imu_model import imu_preset as imu_preset_params
 from viotb.envs.tools.outdir import atomic_out_dir
-from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
+from viotb.models.constants import VEHICLE_BODIES
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
 
@@ -54,6 +54,7 @@ def record_scenario(
     camera_rate_hz: float | None = None,
     imu_rate_hz: float | None = None,
     overwrite: bool = False,
+    cameras: int | None = None,
 ) -> dict:
     """Simulate scenario ``name`` open loop and write a EuRoC ASL folder ``out_dir/mav0``.
 
@@ -71,6 +72,8 @@ def record_scenario(
         camera_rate_hz: Camera rate (Hz; None: the scenario's).
         imu_rate_hz: IMU rate (Hz; None: the preset's).
         overwrite: Replace a non-empty ``out_dir`` when the recording completes.
+        cameras: Cameras to record, 1 (``cam0``) or 2 (``cam0`` and ``cam1``, a stereo rig's scenario only);
+            None = every camera of the scenario's rig.
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
@@ -81,8 +84,9 @@ def record_scenario(
             or rate, or an unusable ``out_dir`` (:class:`viotb.envs.tools.outdir.OutDirError`).
     """
     os.environ.setdefault("MUJOCO_GL", "egl")
+    from viotb.envs.sim.camera_rig import CameraRig
     from viotb.envs.sim.landmarks import scene_landmarks  # (imports mujoco)
-    from viotb.envs.sim.render import OffscreenRenderer, camera_calibration, ensure_offscreen_buffer
+    from viotb.envs.sim.render import ensure_offscreen_buffer
     from viotb.envs.sim.simulation import Simulation
 
     wall_start = time.perf_counter()
@@ -103,10 +107,16 @@ def record_scenario(
         imu_params = replace(imu_params, rate_hz=float(imu_rate_hz))
     duration_s = float(scenario.default_seconds if seconds is None else seconds)
     trajectory = scenario.make_trajectory(duration_s)
+    rig_cameras = scenario.rig_cameras if cameras is None else scenario.rig_cameras[:cameras]
+    if cameras is not None and (cameras not in (1, 2) or len(rig_cameras) != cameras):
+        raise ValueError(
+            f"record_scenario: {name!r} has {len(scenario.rig_cameras)} camera(s), asked for {cameras}"
+        )
 
     with atomic_out_dir(out_dir, overwrite) as tmp_dir:
         # 1. Independent random streams.
-        imu_seq, drop_seq, pixel_seq, landmark_seq = np.random.SeedSequence(seed).spawn(4)
+        # The spawn index of a stream never changes, so cam1's noise leaves cam0's images of a seed unchanged.
+        imu_seq, drop_seq, pixel_seq, landmark_seq, pixel1_seq = np.random.SeedSequence(seed).spawn(5)
         imu_model = ImuModel(imu_params, np.random.default_rng(imu_seq))
         faults = scenario.faults
 
@@ -117,41 +127,28 @@ def record_scenario(
         sim = Simulation(scenario.vehicle, scenario.scene)
         ensure_offscreen_buffer(sim.model, cam_params.width, cam_params.height)
         is_headset = scenario.vehicle == "headset"
-        calib = camera_calibration(
+        rig = CameraRig(
             sim.model,
-            ONBOARD_CAMERA,
+            rig_cameras,
             VEHICLE_BODIES[scenario.vehicle],
-            cam_params.width,
-            cam_params.height,
-            cam_params.time_offset_s,
-            cam_params.rate_hz,
-        )
-        renderer = OffscreenRenderer(
-            sim.model,
-            cam_params.width,
-            cam_params.height,
-            ONBOARD_CAMERA,
-            pixel_noise_std=cam_params.pixel_noise_std,
-            rng=np.random.default_rng(pixel_seq),
+            cam_params,
+            [np.random.default_rng(pixel_seq), np.random.default_rng(pixel1_seq)],
         )
 
         def place_at(t_s: float) -> None:
             s = trajectory.sample(t_s)
             sim.set_pose(s.R_WB, s.p_WB, s.v_WB, s.omega_B, a_W=s.a_WB if is_headset else None)
 
-        blur_offsets_s = np.linspace(-0.5, 0.5, cam_params.blur_samples) * cam_params.exposure_s
-
-        def render(t_exp: float) -> np.ndarray:
-            if cam_params.exposure_s > 0.0:
-                return renderer.render_gray_exposure(sim.data, lambda o: place_at(t_exp + o), blur_offsets_s)
-            place_at(t_exp)
-            return renderer.render_gray(sim.data)
-
         # 3. IMU and ground truth in chunks, each followed by the frames exposed up to its end.
         n_imu = int(np.floor(duration_s * imu_params.rate_hz + 1e-9)) + 1
         path_length_m, saturated, next_frame, last_p = 0.0, 0, 0, None
         # A wrong calibration file when the scenario says so.
-        writer = EurocStreamWriter(tmp_dir, faults.told_calibration(calib))
+        writer = EurocStreamWriter(
+            tmp_dir,
+            faults.told_calibration(rig.calibs[0]),
+            calib_right=faults.told_calibration(rig.calibs[1]) if len(rig) == 2 else None,
+            exposure_s=cam_params.exposure_s if scenario.camera_names else None,
+        )
         try:
             for start in range(0, n_imu, IMU_CHUNK_SAMPLES):
                 t_imu = np.arange(start, min(start + IMU_CHUNK_SAMPLES, n_imu)) / imu_params.rate_hz
@@ -173,7 +170,7 @@ def record_scenario(
                     t_exp = float(schedule.t_exposure_imu_s[i])
                     if t_exp > t_imu[-1] and not last_chunk:
                         break
-                    writer.frame(float(schedule.t_stamp_cam_s[i]), render(t_exp))
+                    writer.frame(float(schedule.t_stamp_cam_s[i]), *rig.render(sim.data, place_at, t_exp))
                     next_frame += 1
                     if progress is not None:
                         progress(next_frame, len(kept))
@@ -182,7 +179,7 @@ def record_scenario(
             writer.finish(imu_params.noise, imu_params.rate_hz, landmarks_W)
         finally:
             writer.close()
-            renderer.close()
+            rig.close()
     wall_s = time.perf_counter() - wall_start
     return {
         "frames": int(len(kept)),
@@ -198,4 +195,5 @@ def record_scenario(
         "resolution": [int(cam_params.width), int(cam_params.height)],
         "camera_rate_hz": float(cam_params.rate_hz),
         "imu_rate_hz": float(imu_params.rate_hz),
+        "cameras": len(rig),
     }

@@ -1,7 +1,8 @@
 """The one scenario registry: every open-loop, closed-loop and failure scenario is registered here only.
 
 :func:`default_registry` builds it once, explicitly, from the libraries of this wing
-(:mod:`~viotb.envs.scenarios.record_catalog`, :mod:`~viotb.envs.scenarios.fly_catalog`,
+(:mod:`~viotb.envs.scenarios.record_catalog`, :mod:`~viotb.envs.scenarios.head_catalog`,
+:mod:`~viotb.envs.scenarios.fly_catalog`,
 :mod:`~viotb.envs.scenarios.failures`); no module writes into another one at import time. Users add their own
 scenarios with :func:`register` (open loop) or :func:`register_fly` (closed loop).
 """
@@ -12,6 +13,7 @@ import functools
 
 from viotb.envs.scenarios.failures import FAILURES, failure_fly_scenarios, failure_record_scenario
 from viotb.envs.scenarios.fly_catalog import fly_scenarios
+from viotb.envs.scenarios.head_catalog import head_scenarios
 from viotb.envs.scenarios.record_catalog import record_scenarios
 from viotb.envs.scenarios.spec import SCENARIO_KINDS, FlyScenario, Scenario, listing
 
@@ -97,6 +99,8 @@ def default_registry() -> ScenarioRegistry:
     """The registry of every scenario this package ships (built once per process, in this one place)."""
     reg = ScenarioRegistry()
     for sc in record_scenarios():
+        reg.register(sc)
+    for sc in head_scenarios():
         reg.register(sc)
     for name in FAILURES:
         reg.register(failure_record_scenario(name, 1.0))

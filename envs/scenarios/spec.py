@@ -15,7 +15,7 @@ from viotb.envs.sim.camera_timing import CameraModelParams
 from viotb.envs.sim.faults import SensorFaults
 from viotb.envs.sim.imu_model import imu_preset
 from viotb.envs.sim.rig import RigConfig
-from viotb.models.constants import SCENE_XMLS, VEHICLE_XMLS
+from viotb.models.constants import ONBOARD_CAMERA, SCENE_XMLS, VEHICLE_XMLS
 
 SCENARIO_KINDS = ("record", "fly")
 """Allowed values of :attr:`Scenario.kind`."""
@@ -39,6 +39,8 @@ class Scenario:
             initializer can start as on real sequences; 0 disables it.
         faults: Calibration / IMU errors written into a recording: the IMU readings carry the IMU faults and
             the dataset's calibration files hold the wrong calibration (as a bad calibration file would).
+        camera_names: The rig's MuJoCo cameras, left (``cam0``) first; empty = the vehicle's single
+            ``onboard`` camera. Two names make a stereo rig (``cam0`` and ``cam1`` in recordings).
     """
 
     name: str
@@ -52,6 +54,7 @@ class Scenario:
     trajectory: Callable[[float], Trajectory] | None = None
     still_start_s: float = 1.5
     faults: SensorFaults = field(default_factory=SensorFaults)
+    camera_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         """Validate names against the models and presets."""
@@ -69,6 +72,13 @@ class Scenario:
                 f"scenario {self.name!r}: default_seconds must be > 0, got {self.default_seconds}"
             )
         imu_preset(self.imu_preset)  # raises ValueError listing the presets
+        if len(self.camera_names) > 2:
+            raise ValueError(f"scenario {self.name!r}: at most 2 cameras, got {self.camera_names}")
+
+    @property
+    def rig_cameras(self) -> tuple[str, ...]:
+        """MuJoCo camera names of the rig, left first (at least one)."""
+        return self.camera_names if self.camera_names else (ONBOARD_CAMERA,)
 
     def make_trajectory(self, seconds: float | None = None) -> Trajectory:
         """The scripted motion for ``seconds`` (default: ``default_seconds``)."""

@@ -24,6 +24,7 @@ from viotb.envs.tools.cli_common import (
 from viotb.envs.tools.cli_common import emit as _emit
 from viotb.envs.tools.cli_data import register as register_data
 from viotb.envs.tools.cli_fly import register as register_fly
+from viotb.envs.tools.headset_cli import register as register_headset
 from viotb.envs.tools.jsonout import dumps_strict
 from viotb.envs.tools.sweep.cli import register as register_sweep
 
@@ -142,6 +143,7 @@ def failures(
 register_data(app)  # viotb record, viotb eval
 register_fly(app)  # viotb fly, viotb demo
 register_sweep(app)  # viotb sweep, viotb sweep-report
+register_headset(app)  # viotb headset
 
 
 def main() -> None:

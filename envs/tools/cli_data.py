@@ -97,6 +97,9 @@ def eval_(
     ),
     frontend: str = frontend_option(help_text="klt (images) or sim (recorded landmarks, fast)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=0, help="Stop after this many frames."),
+    cameras: int = typer.Option(
+        1, "--cameras", min=1, max=2, help="1 (cam0, default) | 2 (cam0 + cam1 of a stereo folder)."
+    ),
     imu_gap_policy: str = choice_option(
         "refuse",
         "--imu-gap-policy",
@@ -120,7 +123,11 @@ def eval_(
     check_out(out, overwrite)
     try:
         opts = EvalOptions(
-            estimator=estimator, frontend=frontend, max_frames=max_frames, imu_gap_policy=imu_gap_policy
+            estimator=estimator,
+            frontend=frontend,
+            max_frames=max_frames,
+            imu_gap_policy=imu_gap_policy,
+            cameras=cameras,
         )
         with progress(f"eval {estimator}", not quiet) as report:
             result = evaluate_dataset(dataset, out, opts, report, overwrite=overwrite)

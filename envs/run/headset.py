@@ -1,0 +1,430 @@
+"""The headset rig with the estimator online: pose at IMU rate, display prediction, headset metrics.
+
+``viotb headset`` runs this. The head follows a scenario's scripted trajectory (kinematic, as in recordings);
+the IMU model turns the analytic truth into 1 kHz readings; the rig's cameras (``head_cam0``, and
+``head_cam1`` with ``cameras=2``) are rendered at their exposure instants (or, with the ``sim`` front end,
+the scene's landmarks are projected). Everything is fed to the estimator in IMU-clock order, as
+:func:`viotb.envs.run.replay.replay` does: before IMU sample ``k``, every frame exposed before ``t_k`` is fed
+(so all samples up to the frame came first); then sample ``k``, then the pose is read.
+
+**Pose at IMU rate.** After each ``feed_imu`` the runner reads ``estimator.estimate()``, which every estimator
+of this package propagates with the buffered IMU to the newest sample (MSCKF: the filter state propagated
+without being changed; window: the newest keyframe propagated), so the 1 kHz pose is the estimator's own
+propagated estimate; the runner does no propagation of its own. From it the
+:class:`~viotb.vio.prediction.DisplayPosePredictor` predicts the pose at ``t + latency`` from the
+bias-corrected gyro (``StateEstimate.omega_B_rad_s``), the velocity and the gravity-removed acceleration
+``a_W = R_WB (f_B - b_a) + g_W`` of the latest accelerometer sample.
+
+**World frame.** A headset defines its world at boot: gravity up, yaw and origin where it started. The
+estimator initializes itself (static initializer on the scenario's still start); at that instant the runner
+maps the estimator's frame to W with one yaw rotation and one translation (4 DoF, once, never refitted), so
+tilt errors of the initializer, and all later drift, show in the metrics.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from viotb.envs.scenarios.registry import get_scenario
+from viotb.envs.sim.camera_timing import frame_schedule
+from viotb.envs.sim.imu_model import ImuModel, imu_preset
+from viotb.models.constants import HEADSET_CAMERAS, VEHICLE_BODIES
+from viotb.vio.factory import make_estimator
+from viotb.vio.headset_metrics import (
+    HeadsetMetricParams,
+    headset_metrics,
+    interpolate_poses,
+    prediction_errors,
+)
+from viotb.vio.msckf_params import MsckfParams
+from viotb.vio.prediction import DisplayPosePredictor, MotionState, PredictionParams
+from viotb.vio.types import CameraFrame, StateEstimate, gravity_W
+from viotb.vio.window import WindowParams
+
+ProgressFn = Callable[[float, float], None]
+
+
+@dataclass(frozen=True)
+class HeadsetOptions:
+    """Settings of one headset run.
+
+    Attributes:
+        estimator: Estimator name (``msckf``, ``window``, ``imu-only``, ``ground-truth``).
+        cameras: 1 (``head_cam0``) or 2 (``head_cam0`` + ``head_cam1``, stereo).
+        latency_s: Display latency the pose is predicted to (s).
+        seconds: Duration (s); None = the scenario's default.
+        seed: Seeds the IMU, pixel noise and frame drops.
+        frontend: ``klt`` (rendered images) or ``sim`` (projected scene landmarks, fast).
+        sim_pixel_sigma_px: Pixel noise of the ``sim`` front end (px).
+        prediction: Predictor settings (its ``latency_s`` is replaced by ``latency_s``).
+        msckf: MSCKF settings (None: defaults).
+        window: Window-optimizer settings (None: defaults).
+    """
+
+    estimator: str = "msckf"
+    cameras: int = 1
+    latency_s: float = 0.020
+    seconds: float | None = None
+    seed: int = 0
+    frontend: str = "klt"
+    sim_pixel_sigma_px: float = 0.5
+    prediction: PredictionParams = field(default_factory=PredictionParams)
+    msckf: MsckfParams | None = None
+    window: WindowParams | None = None
+
+
+@dataclass
+class HeadsetRun:
+    """What a headset run produced (N poses at IMU rate from the first estimate; F frames).
+
+    Attributes:
+        scenario: Scenario name.
+        options: The settings.
+        t_s: Pose times (s, IMU clock), shape (N,).
+        R_est: Estimated orientations in W, shape (N, 3, 3).
+        p_est: Estimated positions in W (m), shape (N, 3).
+        R_true: True orientations at ``t_s``, shape (N, 3, 3).
+        p_true: True positions (m), shape (N, 3).
+        speed_true_rad_s: True head angular speed at ``t_s`` (rad/s), shape (N,).
+        t_pred_s: Times the predictions are for, ``t_s + latency`` (s), shape (M,), M <= N.
+        R_pred: Predicted orientations, shape (M, 3, 3).
+        p_pred: Predicted positions (m), shape (M, 3).
+        R_true_pred: True orientations at ``t_pred_s``, shape (M, 3, 3).
+        p_true_pred: True positions at ``t_pred_s`` (m), shape (M, 3).
+        nees_pos: Position NEES at each frame after initialization, shape (F',).
+        ms_per_frame: Wall time of each ``feed_camera`` (ms), shape (F,).
+        frame_t_s: Frame exposure times (s, IMU clock), shape (F,).
+        tracked: Tracked features per frame, shape (F,).
+        wall_s: Wall time of the whole run (s).
+        images: A few (t_s, image) samples of cam0 for the recording (every 10th frame).
+        failure: Why the run stopped early ("" when it did not).
+    """
+
+    scenario: str
+    options: HeadsetOptions
+    t_s: np.ndarray
+    R_est: np.ndarray
+    p_est: np.ndarray
+    R_true: np.ndarray
+    p_true: np.ndarray
+    speed_true_rad_s: np.ndarray
+    t_pred_s: np.ndarray
+    R_pred: np.ndarray
+    p_pred: np.ndarray
+    R_true_pred: np.ndarray
+    p_true_pred: np.ndarray
+    nees_pos: np.ndarray
+    ms_per_frame: np.ndarray
+    frame_t_s: np.ndarray
+    tracked: np.ndarray
+    wall_s: float
+    images: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    failure: str = ""
+
+
+def _rotz(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _yaw_anchor(est: StateEstimate, R_true: np.ndarray, p_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R_a, t_a)`` mapping the estimator's frame to W: ``x_W = R_a x_E + t_a``, R_a a yaw rotation.
+
+    Chosen so the estimate's heading and position equal the truth's at the initialization instant.
+    """
+    fwd_t, fwd_e = R_true[:, 0], est.R_WB[:, 0]
+    yaw = np.arctan2(fwd_t[1], fwd_t[0]) - np.arctan2(fwd_e[1], fwd_e[0])
+    R_a = _rotz(float(yaw))
+    return R_a, p_true - R_a @ est.p_WB
+
+
+def _check(scenario, opts: HeadsetOptions) -> None:
+    if scenario.vehicle != "headset" or scenario.trajectory is None:
+        raise ValueError(
+            f"viotb headset needs a headset scenario with a scripted motion, got {scenario.name!r}"
+        )
+    if opts.cameras not in (1, 2):
+        raise ValueError(f"cameras must be 1 or 2, got {opts.cameras}")
+    if opts.cameras == 2 and "image_right" not in CameraFrame.__dataclass_fields__:
+        raise ValueError(
+            "--cameras 2 needs the stereo estimators (CameraFrame.image_right, "
+            "make_estimator(calib_right=)), which are not merged into this build yet; use --cameras 1"
+        )
+    if opts.frontend not in ("klt", "sim"):
+        raise ValueError(f"unknown front end {opts.frontend!r}; allowed: klt, sim")
+    if not (np.isfinite(opts.latency_s) and 0.0 <= opts.latency_s <= 0.2):
+        raise ValueError(f"latency must be in [0, 200] ms, got {opts.latency_s * 1e3} ms")
+    if opts.seconds is not None and not (np.isfinite(opts.seconds) and opts.seconds > 0.0):
+        raise ValueError(f"seconds must be positive, got {opts.seconds}")
+
+
+def run_headset(
+    name: str, opts: HeadsetOptions = HeadsetOptions(), progress: ProgressFn | None = None
+) -> HeadsetRun:
+    """Run scenario ``name`` on the headset rig with ``opts.estimator`` online (see the module docstring).
+
+    Raises:
+        ValueError: Not a headset scenario, bad options, or stereo before the stereo estimators exist.
+    """
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from viotb.envs.sim.camera_rig import CameraRig  # (imports mujoco)
+    from viotb.envs.sim.landmarks import project_landmarks, scene_landmarks
+    from viotb.envs.sim.simulation import Simulation
+
+    wall0 = time.perf_counter()
+    scenario = get_scenario(name)
+    _check(scenario, opts)
+    duration_s = float(scenario.default_seconds if opts.seconds is None else opts.seconds)
+    trajectory = scenario.make_trajectory(duration_s)
+    cam = scenario.camera
+    imu_params = imu_preset(scenario.imu_preset)
+    imu_seq, drop_seq, pix0_seq, lm_seq, pix1_seq = np.random.SeedSequence(opts.seed).spawn(5)
+
+    # Truth and IMU at the IMU rate.
+    n_imu = int(np.floor(duration_s * imu_params.rate_hz + 1e-9)) + 1
+    t_imu = np.arange(n_imu) / imu_params.rate_hz
+    truth = trajectory.sample_many(t_imu)
+    imu_model = ImuModel(imu_params, np.random.default_rng(imu_seq))
+    imu, _, _ = imu_model.measure_series_with_biases(t_imu, truth.omega_B, truth.specific_force_B)
+
+    # Cameras.
+    sim = Simulation(scenario.vehicle, scenario.scene)
+    names = (scenario.camera_names or HEADSET_CAMERAS)[: opts.cameras]
+    rngs = [np.random.default_rng(pix0_seq), np.random.default_rng(pix1_seq)]
+    rig = CameraRig(sim.model, names, VEHICLE_BODIES["headset"], cam, rngs, render=opts.frontend == "klt")
+    landmarks_W = (
+        scene_landmarks(sim.model, np.random.default_rng(lm_seq)) if opts.frontend == "sim" else None
+    )
+    schedule = frame_schedule(cam, duration_s, np.random.default_rng(drop_seq))
+    kept = schedule.kept_indices
+    feat_rng = np.random.default_rng(pix0_seq.spawn(1)[0])
+
+    def place_at(t_s: float) -> None:
+        s = trajectory.sample(t_s)
+        sim.set_pose(s.R_WB, s.p_WB, s.v_WB, s.omega_B, a_W=s.a_WB)
+
+    def make_frame(i: int) -> CameraFrame:
+        t_exp = float(schedule.t_exposure_imu_s[i])
+        t_cam = float(schedule.t_stamp_cam_s[i])
+        if opts.frontend == "klt":
+            images = rig.render(sim.data, place_at, t_exp)
+            if opts.cameras == 2:
+                return CameraFrame(t_s=t_cam, image=images[0], image_right=images[1])
+            return CameraFrame(t_s=t_cam, image=images[0])
+        s = trajectory.sample(t_exp)
+        obs = [
+            project_landmarks(
+                landmarks_W,
+                s.R_WB @ c.R_BC,
+                s.p_WB + s.R_WB @ c.p_BC,
+                c.camera,
+                feat_rng,
+                opts.sim_pixel_sigma_px,
+            )
+            for c in rig.calibs
+        ]
+        if opts.cameras == 2:
+            return CameraFrame(t_s=t_cam, features=obs[0], features_right=obs[1])
+        return CameraFrame(t_s=t_cam, features=obs[0])
+
+    # Estimator (the stereo keyword only on a stereo run).
+    msckf = opts.msckf if opts.msckf is not None else MsckfParams()
+    window = opts.window if opts.window is not None else WindowParams()
+    if opts.frontend == "sim":
+        msckf = replace(msckf, pixel_sigma_px=opts.sim_pixel_sigma_px)
+        window = replace(window, pixel_sigma_px=opts.sim_pixel_sigma_px)
+    stereo = {"calib_right": rig.calibs[1]} if opts.cameras == 2 else {}
+    est = make_estimator(
+        opts.estimator,
+        rig.calibs[0],
+        imu_params.noise,
+        frontend=opts.frontend,
+        params=msckf,
+        window_params=window,
+        **stereo,
+    )
+    predictor = DisplayPosePredictor(replace(opts.prediction, latency_s=opts.latency_s))
+
+    g_W = gravity_W()
+    rows_t, rows_R, rows_p, pred_R, pred_p = [], [], [], [], []
+    nees, ms, frame_t, tracked, images = [], [], [], [], []
+    anchor: tuple[np.ndarray, np.ndarray] | None = None
+    failure = ""
+    f = 0
+    try:
+        for k in range(n_imu):
+            t_k = float(t_imu[k])
+            new_frame = False
+            while f < len(kept) and schedule.t_exposure_imu_s[kept[f]] + cam.latency_s < t_k:
+                frame = make_frame(int(kept[f]))
+                if opts.estimator == "ground-truth":
+                    s = trajectory.sample(float(schedule.t_exposure_imu_s[kept[f]]))
+                    est.feed_truth(StateEstimate(t_s=s.t_s, R_WB=s.R_WB, p_WB=s.p_WB, v_WB=s.v_WB))
+                t0 = time.perf_counter()
+                est.feed_camera(frame)
+                ms.append((time.perf_counter() - t0) * 1e3)
+                frame_t.append(float(schedule.t_exposure_imu_s[kept[f]]))
+                tracked.append(est.health().tracked_features)
+                if frame.image is not None and f % 10 == 0:
+                    images.append((frame_t[-1], frame.image))
+                f += 1
+                new_frame = True
+                if progress is not None:
+                    progress(f, len(kept))
+            sample = imu.sample(k)
+            est.feed_imu(sample)
+            if est.health().diverged:
+                failure = f"estimator diverged: {est.health().reason}"
+                break
+            e = est.estimate()
+            if e is None:
+                continue
+            if anchor is None:
+                anchor = _yaw_anchor(e, truth.R_WB[k], truth.p_WB[k])
+            R_a, t_a = anchor
+            R_WB, p_WB, v_WB = R_a @ e.R_WB, R_a @ e.p_WB + t_a, R_a @ e.v_WB
+            omega = np.asarray(e.omega_B_rad_s, dtype=float)
+            predictor.add_gyro(t_k, omega)
+            a_W = R_WB @ (np.asarray(sample.accel_B_m_s2) - e.accel_bias_m_s2) + g_W
+            pred = predictor.predict(MotionState(t_k, R_WB, p_WB, v_WB, omega, a_W))
+            rows_t.append(t_k)
+            rows_R.append(R_WB)
+            rows_p.append(p_WB)
+            pred_R.append(pred.R_WB)
+            pred_p.append(pred.p_WB)
+            if new_frame:
+                err = p_WB - truth.p_WB[k]
+                P = R_a @ e.cov_position_W_m2 @ R_a.T
+                if np.all(np.isfinite(P)) and np.linalg.det(P) > 0.0:
+                    nees.append(float(err @ np.linalg.solve(P, err)))
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        failure = f"{type(exc).__name__}: {exc}"
+    finally:
+        rig.close()
+
+    t_s = np.asarray(rows_t)
+    idx = np.searchsorted(t_imu, t_s)
+    t_pred = t_s + opts.latency_s
+    m = int(np.searchsorted(t_pred, t_imu[-1], side="right"))
+    if m >= 2:
+        R_tp, p_tp = interpolate_poses(t_pred[:m], t_imu, truth.R_WB, truth.p_WB)
+    else:
+        R_tp, p_tp = np.zeros((0, 3, 3)), np.zeros((0, 3))
+    return HeadsetRun(
+        scenario=name,
+        options=opts,
+        t_s=t_s,
+        R_est=np.asarray(rows_R).reshape(-1, 3, 3),
+        p_est=np.asarray(rows_p).reshape(-1, 3),
+        R_true=truth.R_WB[idx],
+        p_true=truth.p_WB[idx],
+        speed_true_rad_s=np.linalg.norm(truth.omega_B[idx], axis=1) if len(idx) else np.zeros(0),
+        t_pred_s=t_pred[:m],
+        R_pred=np.asarray(pred_R).reshape(-1, 3, 3)[:m],
+        p_pred=np.asarray(pred_p).reshape(-1, 3)[:m],
+        R_true_pred=R_tp,
+        p_true_pred=p_tp,
+        nees_pos=np.asarray(nees),
+        ms_per_frame=np.asarray(ms),
+        frame_t_s=np.asarray(frame_t),
+        tracked=np.asarray(tracked),
+        wall_s=time.perf_counter() - wall0,
+        images=images,
+        failure=failure,
+    )
+
+
+def prediction_relative_to_truth(run: HeadsetRun) -> tuple[np.ndarray, np.ndarray]:
+    """Predictions carried onto the truth: the predicted motion over the latency, started from the true pose.
+
+    ``R = R_true(t) R_est(t)^T R_pred``, ``p = p_pred - (p_est(t) - p_true(t))``: the estimate's error at
+    ``t`` (world lock, counted by ``world_lock_ate_mm``) is taken out, so that what is left is the error of
+    the prediction itself (wrong velocity, angular rate or acceleration, and the motion model), which is what
+    ``pred_err_*`` report; ``pred_err_abs_*`` compare the raw predictions with the truth.
+
+    Returns:
+        ``(R (M, 3, 3), p (M, 3))`` for the M predictions of ``run``.
+    """
+    m = len(run.t_pred_s)
+    R_fix = run.R_true[:m] @ np.swapaxes(run.R_est[:m], -1, -2)
+    return R_fix @ run.R_pred, run.p_pred - (run.p_est[:m] - run.p_true[:m])
+
+
+def _finite_or_none(value: float | None, key: str, notes: dict[str, str], why: str) -> float | None:
+    if value is None or not np.isfinite(value):
+        notes.setdefault(key, why)
+        return None
+    return float(value)
+
+
+def headset_result(run: HeadsetRun, params: HeadsetMetricParams | None = None) -> dict:
+    """The JSON result of a run: DESIGN.md's ``viotb headset`` keys plus context (strict JSON, no NaN)."""
+    o = run.options
+    result: dict = {
+        "scenario": run.scenario,
+        "estimator": o.estimator,
+        "frontend": o.frontend,
+        "cameras": o.cameras,
+        "latency_ms": 1e3 * o.latency_s,
+        "seed": o.seed,
+        "frames": int(len(run.ms_per_frame)),
+        "poses": int(len(run.t_s)),
+        "diverged": bool(run.failure),
+        "reason": run.failure,
+        "path_length_m": float(np.sum(np.linalg.norm(np.diff(run.p_true, axis=0), axis=1)))
+        if len(run.t_s)
+        else 0.0,
+        "realtime_factor": float((run.t_s[-1] - run.t_s[0]) / run.wall_s) if len(run.t_s) > 1 else 0.0,
+    }
+    notes: dict[str, str] = {}
+    keys = (
+        "jitter_pos_mm",
+        "jitter_rot_deg",
+        "world_lock_ate_mm",
+        "max_err_mm",
+        "pred_err_pos_mm_p95",
+        "pred_err_rot_deg_p95",
+        "pose_rate_hz",
+        "drift_pct",
+    )
+    if len(run.t_s) >= 10:
+        m = len(run.t_pred_s)
+        R_pc, p_pc = prediction_relative_to_truth(run)
+        pred = prediction_errors(
+            R_pc, p_pc, run.R_true_pred, run.p_true_pred, run.speed_true_rad_s[:m], params
+        )
+        absolute = prediction_errors(
+            run.R_pred, run.p_pred, run.R_true_pred, run.p_true_pred, run.speed_true_rad_s[:m], params
+        )
+        result["pred_err_abs_pos_mm_p95"] = absolute.pos_mm
+        result["pred_err_abs_rot_deg_p95"] = absolute.rot_deg
+        hm = headset_metrics(run.t_s, run.R_est, run.p_est, run.R_true, run.p_true, pred, params).to_dict()
+        notes.update(hm.pop("notes"))
+        for key in keys:
+            result[key] = _finite_or_none(hm[key], key, notes, "not finite")
+        result["pred_fast_samples"] = pred.n_fast
+        for key in ("pred_err_abs_pos_mm_p95", "pred_err_abs_rot_deg_p95"):
+            result[key] = _finite_or_none(result[key], key, notes, notes.get("pred_err_pos_mm_p95", "none"))
+    else:
+        for key in keys:
+            result[key] = None
+            notes[key] = "fewer than 10 poses (the estimator did not initialize)"
+    ms = run.ms_per_frame
+    why_ms = "no frame processed"
+    result["ms_per_frame_median"] = _finite_or_none(
+        float(np.median(ms)) if len(ms) else None, "ms_per_frame_median", notes, why_ms
+    )
+    result["ms_per_frame_p99"] = _finite_or_none(
+        float(np.percentile(ms, 99)) if len(ms) else None, "ms_per_frame_p99", notes, why_ms
+    )
+    nees = run.nees_pos
+    result["nees_pos_mean"] = _finite_or_none(
+        float(np.mean(nees)) if len(nees) else None, "nees_pos_mean", notes, "no covariance (or no frame)"
+    )
+    result["mean_tracked_features"] = float(np.mean(run.tracked)) if len(run.tracked) else 0.0
+    result["notes"] = notes
+    return result
