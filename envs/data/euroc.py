@@ -184,10 +184,9 @@ def _yaml_number(data: dict, path: Path, key: str) -> float:
 
 def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
     data = _read_yaml(path)
-    fields = {
-        k: _yaml_field(data, path, k, n) for k, n in (("intrinsics", 4), ("resolution", 2)) if k in data
-    }
-    camera = camera_from_kalibr({**data, **fields}, str(path))
+    # OpenCV-written files hold lists as ``!!opencv-matrix`` mappings: give the camera model their ``data``.
+    lists = {k: v["data"] for k, v in data.items() if isinstance(v, dict) and "data" in v and k != "T_BS"}
+    camera = camera_from_kalibr({**data, **lists}, str(path))
     t_bs = _yaml_field(data, path, "T_BS")
     if not isinstance(t_bs, dict):
         raise ValueError(f"{path}: field 'T_BS' must be a mapping with 'data', got {t_bs!r}")
