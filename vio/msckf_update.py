@@ -147,6 +147,9 @@ def msckf_update(
     if stereo:
         assert calib_right is not None
         xy1, mask1 = db.observations(cand, times, cam=1)
+        stereo = bool(mask1.any())  # without cam1 views this is exactly the mono update
+    if stereo:
+        assert calib_right is not None
         xy, mask = np.concatenate([xy, xy1], axis=1), np.concatenate([mask, mask1], axis=1)
         R_WC = np.concatenate([R_WC, R_WB @ calib_right.R_BC])
         p_WC = np.concatenate([p_WC, p_WB + R_WB @ np.asarray(calib_right.p_BC, dtype=float)])
