@@ -8,30 +8,48 @@ Both front ends implement one small interface, ``process(frame, t_imu_s) -> Trac
 - :class:`SimFeatureTracker` is the fast mode: it takes the simulated projections ``frame.features``.
 
 Observations leave the front end as undistorted normalized coordinates. :class:`FeatureDatabase` stores them
-per clone time in fixed arrays and answers time-based queries.
+per clone time and camera in fixed arrays and answers time-based queries (:mod:`.feature_database`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import cv2
 import numpy as np
 from viotb.vio.camera import PinholeCamera
+from viotb.vio.feature_database import FeatureDatabase
 from viotb.vio.types import CameraFrame
+
+__all__ = [
+    "FeatureDatabase",
+    "FrontEnd",
+    "KltParams",
+    "KltTracker",
+    "SimFeatureTracker",
+    "Tracks",
+    "make_frontend",
+]
 
 
 @dataclass(frozen=True)
 class Tracks:
-    """Feature observations of one frame.
+    """Feature observations of one frame, in cam0 and (stereo rigs) cam1.
+
+    The cam0 fields are what every consumer of a mono front end reads (keyframing, zero-velocity test,
+    initialization); the cam1 fields are empty for a mono rig. A track id names one landmark in both
+    cameras, so an observation is ``(id, camera index, xy)``: :meth:`camera` returns one camera's.
 
     Attributes:
         t_cam_s: Camera timestamp (s).
         t_imu_s: The same instant on the IMU clock (s).
-        ids: Track ids, shape (M,), int64.
-        xy_norm: Undistorted normalized coordinates, shape (M, 2).
-        uv_px: Measured (distorted) pixels, shape (M, 2).
+        ids: Track ids seen in cam0, shape (M,), int64.
+        xy_norm: Undistorted normalized coordinates in cam0, shape (M, 2).
+        uv_px: Measured (distorted) cam0 pixels, shape (M, 2).
+        ids_right: Track ids seen in cam1, shape (M1,), int64.
+        xy_norm_right: Undistorted normalized coordinates in cam1 (its own intrinsics), shape (M1, 2).
+        uv_px_right: Measured (distorted) cam1 pixels, shape (M1, 2).
     """
 
     t_cam_s: float
@@ -39,10 +57,26 @@ class Tracks:
     ids: np.ndarray
     xy_norm: np.ndarray
     uv_px: np.ndarray
+    ids_right: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    xy_norm_right: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    uv_px_right: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def __len__(self) -> int:
-        """Number of observations."""
+        """Number of cam0 observations."""
         return int(self.ids.shape[0])
+
+    @property
+    def num_cameras(self) -> int:
+        """2 when this frame has cam1 observations, else 1."""
+        return 2 if len(self.ids_right) else 1
+
+    def camera(self, cam: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Observations of camera ``cam`` (0 or 1): ``(ids (M,), xy_norm (M, 2), uv_px (M, 2))``."""
+        if cam == 0:
+            return self.ids, self.xy_norm, self.uv_px
+        if cam == 1:
+            return self.ids_right, self.xy_norm_right, self.uv_px_right
+        raise ValueError(f"Tracks.camera: camera index must be 0 or 1, got {cam}")
 
     @staticmethod
     def empty(t_cam_s: float, t_imu_s: float) -> Tracks:
@@ -112,8 +146,14 @@ class KltTracker:
         self._undistort_criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
 
     def undistort(self, uv_px: np.ndarray) -> np.ndarray:
-        """Pixels (N, 2) -> undistorted normalized coordinates (N, 2) with OpenCV's iterative inverse."""
+        """Pixels (N, 2) -> undistorted normalized coordinates (N, 2).
+
+        Radial-tangential cameras use OpenCV's iterative inverse (``cv2.undistortPoints``); other models
+        (equidistant) their own ``undistort_points``.
+        """
         uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
+        if self.camera.distortion_model != "radial-tangential":
+            return self.camera.undistort_points(uv) if len(uv) else np.zeros((0, 2))
         if not self.camera.has_distortion or len(uv) == 0:
             return self.camera.undistort_points(uv) if len(uv) else np.zeros((0, 2))
         out = cv2.undistortPoints(
@@ -267,138 +307,6 @@ class SimFeatureTracker:
             raise ValueError(f"SimFeatureTracker: {len(ids)} ids but {len(uv)} uv_px rows")
         ok = np.all(np.isfinite(uv), axis=1)
         return Tracks(frame.t_s, t_imu_s, ids[ok], self.camera.undistort_points(uv[ok]), uv[ok])
-
-
-class FeatureDatabase:
-    """Observations per (frame time, feature id) in fixed arrays.
-
-    Frames are keyed by camera time (the clone key). Storage: ``slot x column`` arrays where a column
-    holds one feature id; columns and slots are recycled.
-
-    Args:
-        max_frames: Frame slots (the clone window plus slack).
-        initial_features: Initial column capacity (doubles when full).
-    """
-
-    def __init__(self, max_frames: int, initial_features: int = 512) -> None:
-        """Create an empty database."""
-        self._slot_t = np.full(max_frames, np.nan)
-        self._xy = np.zeros((max_frames, initial_features, 2))
-        self._has = np.zeros((max_frames, initial_features), dtype=bool)
-        self._col_id = np.full(initial_features, -1, dtype=np.int64)
-        self._id_to_col: dict[int, int] = {}
-
-    @property
-    def frame_times(self) -> np.ndarray:
-        """Stored frame times (s), sorted, shape (S,)."""
-        t = self._slot_t[np.isfinite(self._slot_t)]
-        return np.sort(t)
-
-    def _slot_of(self, t_s: float) -> int | None:
-        hit = np.nonzero(self._slot_t == t_s)[0]
-        return int(hit[0]) if len(hit) else None
-
-    def _grow(self) -> None:
-        c = self._col_id.shape[0]
-        self._xy = np.concatenate([self._xy, np.zeros_like(self._xy)], axis=1)
-        self._has = np.concatenate([self._has, np.zeros_like(self._has)], axis=1)
-        self._col_id = np.concatenate([self._col_id, np.full(c, -1, dtype=np.int64)])
-
-    def add(self, t_s: float, ids: np.ndarray, xy_norm: np.ndarray) -> None:
-        """Store one frame's observations at time ``t_s`` (the oldest frame is evicted when full)."""
-        slot = self._slot_of(t_s)
-        if slot is None:
-            free = np.nonzero(~np.isfinite(self._slot_t))[0]
-            if len(free) == 0:
-                self.remove_frame(float(np.nanmin(self._slot_t)))
-                free = np.nonzero(~np.isfinite(self._slot_t))[0]
-            slot = int(free[0])
-            self._slot_t[slot] = t_s
-            self._has[slot] = False
-        cols = np.empty(len(ids), dtype=np.int64)
-        for i, fid in enumerate(ids.tolist()):
-            col = self._id_to_col.get(fid)
-            if col is None:
-                free_cols = np.nonzero(self._col_id < 0)[0]
-                if len(free_cols) == 0:
-                    self._grow()
-                    free_cols = np.nonzero(self._col_id < 0)[0]
-                col = int(free_cols[0])
-                self._col_id[col] = fid
-                self._id_to_col[fid] = col
-            cols[i] = col
-        self._xy[slot, cols] = xy_norm
-        self._has[slot, cols] = True
-
-    def _active_cols(self) -> np.ndarray:
-        return np.nonzero(self._col_id >= 0)[0]
-
-    def features_lost(self, t_s: float) -> np.ndarray:
-        """Ids with observations but none at time ``t_s`` (tracks that ended before this frame)."""
-        cols = self._active_cols()
-        slot = self._slot_of(t_s)
-        if slot is None:
-            return self._col_id[cols]
-        return self._col_id[cols[~self._has[slot, cols]]]
-
-    def features_seen_at(self, t_s: float) -> np.ndarray:
-        """Ids observed at time ``t_s``."""
-        slot = self._slot_of(t_s)
-        if slot is None:
-            return np.zeros(0, dtype=np.int64)
-        cols = self._active_cols()
-        return self._col_id[cols[self._has[slot, cols]]]
-
-    def track_lengths(self, ids: np.ndarray) -> np.ndarray:
-        """Number of stored observations of each id (0 for unknown ids), shape (F,)."""
-        cols = np.array([self._id_to_col.get(int(i), -1) for i in ids], dtype=np.int64)
-        valid = self._slot_t == self._slot_t  # finite slots
-        counts = self._has[valid][:, np.maximum(cols, 0)].sum(axis=0) if len(cols) else np.zeros(0, int)
-        return np.where(cols >= 0, counts, 0)
-
-    def observations(self, ids: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Observations of ``ids`` at ``times``: xy (F, K, 2) and mask (F, K) (False for missing)."""
-        cols = np.array([self._id_to_col.get(int(i), -1) for i in ids], dtype=np.int64)
-        F, K = len(ids), len(times)
-        xy = np.zeros((F, K, 2))
-        mask = np.zeros((F, K), dtype=bool)
-        for k, t in enumerate(times):
-            slot = self._slot_of(float(t))
-            if slot is None:
-                continue
-            ok = cols >= 0
-            xy[ok, k] = self._xy[slot, cols[ok]]
-            mask[ok, k] = self._has[slot, cols[ok]]
-        return xy, mask
-
-    def remove_features(self, ids: np.ndarray) -> None:
-        """Delete every observation of ``ids``."""
-        for fid in np.asarray(ids).tolist():
-            col = self._id_to_col.pop(int(fid), None)
-            if col is not None:
-                self._has[:, col] = False
-                self._col_id[col] = -1
-
-    def remove_frame(self, t_s: float) -> None:
-        """Delete the frame at ``t_s`` and every feature left without observations."""
-        slot = self._slot_of(t_s)
-        if slot is None:
-            return
-        self._has[slot] = False
-        self._slot_t[slot] = np.nan
-        cols = self._active_cols()
-        empty = cols[~self._has[:, cols].any(axis=0)]
-        self.remove_features(self._col_id[empty])
-
-    def cleanup_older_than(self, t_s: float) -> None:
-        """Delete every frame older than ``t_s``."""
-        for t in self.frame_times[self.frame_times < t_s]:
-            self.remove_frame(float(t))
-
-    @property
-    def num_features(self) -> int:
-        """Number of feature ids stored."""
-        return len(self._id_to_col)
 
 
 def make_frontend(kind: str, camera: PinholeCamera, klt: KltParams, owner: str) -> FrontEnd:

@@ -16,16 +16,17 @@ updating and never raises from numpy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.frontend import FeatureDatabase, FrontEnd, Tracks, make_frontend
+from viotb.vio.feature_database import FeatureDatabase
+from viotb.vio.frontend import FrontEnd, Tracks, make_frontend
+from viotb.vio.frontend_stereo import make_stereo_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lie import log_so3
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
 from viotb.vio.msckf_params import MsckfParams
+from viotb.vio.msckf_update import UpdateStats, msckf_update
 from viotb.vio.propagator import Propagator
 from viotb.vio.state import (
     EXTRINSIC_BLOCK,
@@ -40,7 +41,6 @@ from viotb.vio.state import (
     marginalize_oldest_clone,
     read_init_record,
 )
-from viotb.vio.triangulation import triangulate
 from viotb.vio.types import (
     CalibrationDrift,
     CameraFrame,
@@ -51,50 +51,21 @@ from viotb.vio.types import (
 )
 from viotb.vio.update_helpers import (
     Chi2Table,
-    clone_unobservable_basis,
-    feature_jacobian,
-    measurement_compress,
-    nullspace_project,
-    observability_constrain,
 )
 from viotb.vio.zero_velocity import ZeroVelocityDetector
-
-
-@dataclass(frozen=True)
-class UpdateStats:
-    """Bookkeeping of one MSCKF update.
-
-    Attributes:
-        candidates: Features considered.
-        triangulated: Features that triangulated.
-        used: Features that passed the gate and entered the update.
-        rejected: Features rejected by the chi-square gate.
-        rows: Measurement rows after null-space projection (before compression).
-        inconsistent: Features whose views admit no common point (triangulation reprojection error above
-            its gate), a divergence symptom when they dominate.
-        nis_per_dof: Mean over the features that passed the gate of ``chi2 / dof`` (normalized innovation
-            squared per degree of freedom; ~1 when consistent), NaN when none passed.
-        nis_per_dof_all: The same mean over every triangulated candidate (rejected ones included).
-    """
-
-    candidates: int = 0
-    triangulated: int = 0
-    used: int = 0
-    rejected: int = 0
-    rows: int = 0
-    inconsistent: int = 0
-    nis_per_dof: float = float("nan")
-    nis_per_dof_all: float = float("nan")
 
 
 class MsckfEstimator:
     """The MSCKF estimator (implements :class:`viotb.vio.types.Estimator`).
 
     Args:
-        calib: Camera intrinsics, extrinsics and time offset.
+        calib: Cam0 intrinsics, extrinsics (``R_BC``, ``p_BC``) and time offset.
         noise: IMU noise densities.
         params: Settings.
-        frontend: Optional front end overriding ``params.frontend``.
+        frontend: Optional front end overriding ``params.frontend`` (it must fill the cam1 fields of its
+            tracks itself on a stereo rig).
+        calib_right: Cam1 intrinsics and extrinsics of a stereo rig (synchronized with cam0, the same time
+            offset), or None for mono. Frames without right data are then used as mono frames.
     """
 
     name = "msckf"
@@ -105,9 +76,11 @@ class MsckfEstimator:
         noise: ImuNoise,
         params: MsckfParams | None = None,
         frontend: FrontEnd | None = None,
+        calib_right: CameraCalibration | None = None,
     ) -> None:
         """Create an uninitialized filter."""
         self.calib = calib
+        self.calib_right = calib_right
         self.noise = noise
         self.params = params if params is not None else MsckfParams()
         p = self.params
@@ -119,15 +92,19 @@ class MsckfEstimator:
                 f"got {p.update_linearization!r}"
             )
         if frontend is None:
-            frontend = make_frontend(p.frontend, calib.camera, p.klt, "MsckfParams")
+            mono = make_frontend(p.frontend, calib.camera, p.klt, "MsckfParams")
+            frontend = make_stereo_frontend(mono, calib, calib_right, p.stereo)
         self.frontend = frontend
         self.propagator = Propagator(noise, p.integration, p.use_fej)
-        self.database = FeatureDatabase(p.max_clones + 3)
-        self.chi2 = Chi2Table(2 * (p.max_clones + 2) + 20)
+        n_cams = 1 if calib_right is None else 2
+        self.database = FeatureDatabase(p.max_clones + 3, num_cameras=n_cams)
+        self.chi2 = Chi2Table(2 * n_cams * (p.max_clones + 2) + 20)
         self.state: State | None = None
         self.initializer = InertialInitializer(calib, noise, InitParams())
         self._focal_px = 0.5 * (calib.camera.fx + calib.camera.fy)
-        self._sigma_norm = p.pixel_sigma_px / self._focal_px
+        self._focal_right_px = None
+        if calib_right is not None:
+            self._focal_right_px = 0.5 * (calib_right.camera.fx + calib_right.camera.fy)
         self._prev_tracks: Tracks | None = None
         self._prev_frame_t_imu: float | None = None
         self._last_imu: ImuSample | None = None
@@ -312,7 +289,18 @@ class MsckfEstimator:
             self.keyframe_rule.accept(tracks)
             self.propagator.propagate_and_clone(st, frame.t_s)
             self.database.add(frame.t_s, tracks.ids, tracks.xy_norm)
-            stats = self._msckf_update(frame.t_s)
+            if self.calib_right is not None and len(tracks.ids_right):
+                self.database.add(frame.t_s, tracks.ids_right, tracks.xy_norm_right, cam=1)
+            stats = msckf_update(
+                st,
+                self.database,
+                p,
+                self.chi2,
+                frame.t_s,
+                self._focal_px,
+                self.calib_right,
+                self._focal_right_px,
+            )
             if len(st.clones) > p.max_clones:
                 t_old = marginalize_oldest_clone(st)
                 if t_old is not None:
@@ -370,103 +358,3 @@ class MsckfEstimator:
         rows = np.arange(9) if self.params.zupt_update_accel else np.r_[0:3, 6:9]
         ekf_update(st, test.H[rows], test.r[rows], test.R[np.ix_(rows, rows)])
         return True
-
-    def _msckf_update(self, t_now: float) -> UpdateStats:
-        """MSCKF update (Mourikis and Roumeliotis 2007, sec. III-D/E; open_vins ``UpdaterMSCKF::update``)."""
-        st = self.state
-        assert st is not None
-        p = self.params
-        db = self.database
-        # 0. Features whose tracks ended, plus those seen in the oldest clone when it is about to go.
-        lost = db.features_lost(t_now)
-        cand = lost
-        times = st.clone_times
-        if len(st.clones) > p.max_clones:
-            cand = np.union1d(lost, db.features_seen_at(float(times[0])))
-        if len(cand) == 0:
-            return UpdateStats()
-        # 1. Clean: observations at clone times only (the database is keyed by clone time) and tracks
-        #    long enough; the other lost features can never be used.
-        lengths = db.track_lengths(cand)
-        usable = lengths >= p.min_track_length
-        db.remove_features(lost[~np.isin(lost, cand[usable])])
-        cand, lengths = cand[usable], lengths[usable]
-        if len(cand) == 0:
-            return UpdateStats()
-        order = np.argsort(-lengths, kind="stable")[: p.max_features_per_update]
-        cand = cand[order]
-        xy, mask = db.observations(cand, times)
-        db.remove_features(cand)
-        clones = list(st.clones.values())
-        R_WB = np.stack([c.R_WB for c in clones])
-        p_WB = np.stack([c.p_WB for c in clones])
-        R_WC = R_WB @ st.R_BC
-        p_WC = p_WB + R_WB @ st.p_BC
-        # 2. Triangulate every feature in the current clone estimates.
-        tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, self._focal_px)
-        ok = tri.valid
-        n_cand = len(cand)
-        n_bad = int(np.sum(tri.rms_error_px >= p.triangulation.max_reprojection_error_px))
-        if not np.any(ok):
-            return UpdateStats(candidates=n_cand, inconsistent=n_bad)
-        xy, mask, p_f = xy[ok], mask[ok], tri.p_W[ok]
-        F, K = mask.shape
-        # 3. Residuals at the current estimates; Jacobians where ``update_linearization`` says.
-        cur = feature_jacobian(R_WB[None], p_WB[None], st.R_BC, st.p_BC, p_f[:, None, :])
-        if p.use_fej and p.update_linearization == "first_estimates":
-            R_fej = np.stack([c.R_WB_fej for c in clones])
-            p_fej = np.stack([c.p_WB_fej for c in clones])
-            jac = feature_jacobian(R_fej[None], p_fej[None], st.R_BC, st.p_BC, p_f[:, None, :])
-        else:
-            jac = cur
-        w = mask[..., None].astype(float)
-        r = ((xy - cur.z_norm) * w).reshape(F, 2 * K)
-        H_f = (jac.H_feature * w[..., None]).reshape(F, 2 * K, 3)
-        H_x = np.zeros((F, 2 * K, st.dim))
-        H_pose = jac.H_pose * w[..., None]
-        for k, t in enumerate(times):
-            o = st.clone_block(float(t)).offset
-            H_x[:, 2 * k : 2 * k + 2, o : o + 6] = H_pose[:, k]
-        if st.has_block(EXTRINSIC_BLOCK):
-            o = st.block(EXTRINSIC_BLOCK).offset
-            H_x[:, :, o : o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * K, 6)
-        # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
-        H_o, r_o = nullspace_project(H_x, H_f, r)
-        if p.use_fej and p.update_linearization == "current_oc":
-            # 4b. Observability constraint: no information on global position/yaw at the first estimates,
-            #     the directions the FEJ propagation keeps unobservable (Hesch et al. TRO 2014, OC-EKF).
-            offsets = np.array([st.clone_block(float(t)).offset for t in times])
-            R_fej = np.stack([c.R_WB_fej for c in clones])
-            p_fej = np.stack([c.p_WB_fej for c in clones])
-            U = clone_unobservable_basis(R_fej, p_fej, offsets, st.dim)
-            H_o = observability_constrain(H_o, U)
-        # 5. Chi-square gate at 95 % per feature with dof = 2 m - 3.
-        P = st.cov
-        sigma2 = self._sigma_norm**2
-        HP = (H_o.reshape(-1, st.dim) @ P).reshape(H_o.shape)
-        S = HP @ np.swapaxes(H_o, 1, 2)
-        S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += sigma2
-        chi2 = np.einsum("fi,fi->f", r_o, np.linalg.solve(S, r_o[..., None])[..., 0])
-        dof = 2 * mask.sum(axis=1) - 3
-        passed = chi2 < p.chi2_multiplier * self.chi2(dof)
-        n_pass = int(passed.sum())
-        nis = chi2 / dof
-        stats = UpdateStats(
-            n_cand,
-            F,
-            n_pass,
-            int(F - n_pass),
-            int(dof[passed].sum()),
-            n_bad,
-            float(np.mean(nis[passed])) if n_pass else float("nan"),
-            float(np.mean(nis)),
-        )
-        if n_pass == 0:
-            return stats
-        # 6. Stack, compress (QR) and update.
-        H_all = H_o[passed].reshape(-1, st.dim)
-        r_all = r_o[passed].reshape(-1)
-        H_c, r_c = measurement_compress(H_all, r_all)
-        ekf_update(st, H_c, r_c, sigma2)
-        # 7. Marginalizing the oldest clone is done by the caller after this update.
-        return stats

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 from viotb.vio.frontend import KltParams
 from viotb.vio.keyframing import KeyframeParams
 from viotb.vio.propagator import Integration
+from viotb.vio.stereo import StereoMatchParams
 from viotb.vio.triangulation import TriangulationParams
 from viotb.vio.zero_velocity import ZeroVelocityParams
 
@@ -22,7 +23,8 @@ class MsckfParams:
         keyframing: Which frames become clones (and update); the front end still tracks every frame
             (:mod:`viotb.vio.keyframing`; at least every 6th frame, or 3 px of parallax).
         max_features_per_update: Most features used in one update (longest tracks first).
-        min_track_length: Fewest clone observations for a feature to be used.
+        min_track_length: Fewest observations (views of every camera, on a stereo rig) for a feature to be
+            used.
         pixel_sigma_px: Feature measurement noise (px).
         chi2_multiplier: Multiplier on the 95 % chi-square gate of each feature.
         integration: IMU integration method.
@@ -40,6 +42,10 @@ class MsckfParams:
             ``use_fej`` is True; otherwise ``"current"``.
         frontend: ``"klt"`` (images) or ``"sim"`` (``frame.features``).
         klt: KLT settings.
+        stereo: Left-right matching settings of a stereo rig (:mod:`viotb.vio.frontend_stereo`). A 15 px
+            window on 2 pyramid levels: each track starts from its previous stereo depth, and on the rendered
+            headset look-around (320x240) it keeps the accuracy of 21 px / 3 levels (ATE 13.8 vs 13.5 mm)
+            for 4 ms less CPU per frame.
         triangulation: Triangulation settings.
         zero_velocity: When a zero-velocity update (ZUPT) is made (:mod:`viotb.vio.zero_velocity`; only
             until the platform first moves, speed gate 0.2 m/s, chi-square gate from ``chi2_multiplier``).
@@ -68,6 +74,7 @@ class MsckfParams:
     update_linearization: str = "current_oc"
     frontend: str = "klt"
     klt: KltParams = field(default_factory=KltParams)
+    stereo: StereoMatchParams = field(default_factory=lambda: StereoMatchParams(win_size_px=15, max_level=2))
     triangulation: TriangulationParams = field(default_factory=TriangulationParams)
     zero_velocity: ZeroVelocityParams = field(default_factory=ZeroVelocityParams)
     zupt_update_accel: bool = False

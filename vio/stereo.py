@@ -174,6 +174,7 @@ def match_stereo(
     calib0: CameraCalibration,
     calib1: CameraCalibration,
     params: StereoMatchParams | None = None,
+    prior_depth_m: np.ndarray | None = None,
 ) -> StereoMatches:
     """Track left-image points into the right image (KLT) and keep the geometrically consistent ones.
 
@@ -189,6 +190,8 @@ def match_stereo(
         calib0: Left camera calibration.
         calib1: Right camera calibration.
         params: Settings.
+        prior_depth_m: Per-point depth (m) of the initial guess, shape (N,) (e.g. the depth of the same
+            track in the previous frame); non-finite entries use ``params.prior_depth_m``.
 
     Returns:
         The matches (all N rows; see ``mask``).
@@ -202,7 +205,12 @@ def match_stereo(
     cam0, cam1 = calib0.camera, calib1.camera
     # 1. Initial guess at the prior depth.
     b0 = cam0.unproject(uv0.astype(float))
-    guess_C1 = (b0 * (p.prior_depth_m / b0[:, 2:3])) @ R_C1C0.T + p_C1C0
+    depth = np.full(n, p.prior_depth_m)
+    if prior_depth_m is not None:
+        given = np.asarray(prior_depth_m, dtype=float).reshape(n)
+        depth = np.where(np.isfinite(given) & (given > 0.0), given, depth)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        guess_C1 = (b0 * (depth[:, None] / b0[:, 2:3])) @ R_C1C0.T + p_C1C0
     guess = cam1.project(guess_C1)
     guess = np.where(np.isfinite(guess) & (guess_C1[:, 2:3] > 0.0), guess, uv0).astype(np.float32)
     # 2.-3. KLT forward and backward.

@@ -96,15 +96,23 @@ class FeatureObservations:
 class CameraFrame:
     """One camera frame: a grayscale image and/or simulated feature observations.
 
+    Mono rigs leave the ``*_right`` fields None; a stereo rig fills them with its second camera (cam1),
+    triggered with cam0 (synchronized global shutter, same timestamp).
+
     Attributes:
         t_s: Timestamp (s) on the camera clock (``t_imu = t_s + time_offset_s`` of the rig calibration).
-        image: Grayscale uint8 image, shape (H, W), or None in simulated-feature mode.
-        features: Simulated observations, or None for real images.
+        image: Grayscale uint8 image of cam0, shape (H, W), or None in simulated-feature mode.
+        features: Simulated observations of cam0, or None for real images.
+        image_right: Grayscale uint8 image of cam1 at the same timestamp, shape (H1, W1), or None.
+        features_right: Simulated observations of cam1 (the same landmark ids as ``features`` where a
+            landmark is seen by both), or None.
     """
 
     t_s: float
     image: np.ndarray | None = None
     features: FeatureObservations | None = None
+    image_right: np.ndarray | None = None
+    features_right: FeatureObservations | None = None
 
 
 @dataclass(frozen=True)

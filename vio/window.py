@@ -9,8 +9,11 @@ State: a window of keyframes ``x_k = [R_WB, p_WB, v_WB, b_g, b_a]`` and landmark
 
 1. Preintegrate the IMU from the previous keyframe and predict the new one (Forster eq. 33;
    :mod:`viotb.vio.window_factors`).
-2. Triangulate features seen in ``min_track_length`` keyframes that are not landmarks yet.
-3. Minimize by Levenberg-Marquardt the IMU factors, the robust reprojection factors, the zero-velocity
+2. Triangulate features seen in ``min_track_length`` keyframes that are not landmarks yet (on a stereo rig,
+   also those one keyframe sees in both cameras: their depth comes from the baseline, so scale is
+   observable from the first keyframe).
+3. Minimize by Levenberg-Marquardt the IMU factors, the robust reprojection factors (cam1's with cam1's
+   extrinsics on a stereo rig), the zero-velocity
    factors of still keyframes (:mod:`viotb.vio.zero_velocity`) and the linear prior left by marginalization
    (OKVIS eq. 9), landmarks eliminated by the Schur complement (:mod:`viotb.vio.window_solver`).
 4. When the window is full, marginalize the oldest keyframe together with every landmark it observed
@@ -27,18 +30,18 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass, field
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.frontend import FrontEnd, KltParams, Tracks, make_frontend
+from viotb.vio.frontend import FrontEnd, Tracks, make_frontend
+from viotb.vio.frontend_stereo import make_stereo_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
-from viotb.vio.keyframing import KeyframeParams, KeyframeSelector
+from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
 from viotb.vio.marginalization import LinearPrior, schur_complement
 from viotb.vio.propagator import ImuBuffer, select_imu_readings
 from viotb.vio.state import POS, ImuValues, read_init_record
-from viotb.vio.triangulation import TriangulationParams, triangulate
+from viotb.vio.triangulation import triangulate
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
 from viotb.vio.window_factors import (
     NX,
@@ -58,6 +61,7 @@ from viotb.vio.window_map import (
     observations,
     track_matrix,
 )
+from viotb.vio.window_params import WindowParams
 from viotb.vio.window_solver import (
     Factors,
     FactorWeights,
@@ -65,8 +69,9 @@ from viotb.vio.window_solver import (
     linearize,
     newest_keyframe_covariance,
     schur_reduce,
+    stereo_weights,
 )
-from viotb.vio.zero_velocity import ZeroVelocityDetector, ZeroVelocityParams
+from viotb.vio.zero_velocity import ZeroVelocityDetector
 
 __all__ = [
     "NX",
@@ -80,82 +85,15 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class WindowParams:
-    """Sliding-window optimizer settings.
-
-    Attributes:
-        window_size: Keyframes in the window (8-10 as VINS-Mono / OKVIS).
-        keyframing: Which frames become keyframes (:mod:`viotb.vio.keyframing`; at least every 3rd frame,
-            or 10 px of parallax).
-        min_track_length: Keyframes that must see a feature before it is triangulated into a landmark.
-        max_landmarks: Most landmarks in the window (longest tracks first).
-        pixel_sigma_px: Feature measurement noise (px).
-        huber_threshold: Huber threshold on the whitened reprojection error norm (sigmas).
-        outlier_threshold: Landmarks with any whitened reprojection error above this (sigmas) after the
-            optimization are removed.
-        max_iterations: Levenberg-Marquardt iterations per keyframe.
-        initial_damping: Initial LM damping, relative to the diagonal.
-        repropagate_gyro_bias_rad_s: Re-integrate a preintegration when the gyro bias moved this far (rad/s)
-            from its linearization point (first-order correction otherwise, Forster eq. 44).
-        repropagate_accel_bias_m_s2: Same for the accelerometer bias (m/s^2).
-        zero_velocity: When a keyframe is still (:mod:`viotb.vio.zero_velocity`: no speed gate, a chi-square
-            gate of 16.92, two failed IMU tests in a row mean motion). It then gets a zero-velocity factor
-            (sigma ``velocity_sigma_m_s``) and, after a still one, a no-motion factor on the positions (sigma
-            ``velocity_sigma_m_s * dt``): at rest nothing triangulates. EuRoC V1_01 at rest, KLT, 3.2 s:
-            4.1 cm drift without, 3.6 mm at most with both (MSCKF's ZUPT 0.9 mm).
-        excitation_accel_bias_sigma_m_s2: Above this horizontal accelerometer-bias sigma (m/s^2) of the
-            newest keyframe the estimator asks for excitation (:meth:`WindowEstimator.wants_excitation`).
-        frontend: ``"klt"`` (images) or ``"sim"`` (``frame.features``).
-        klt: KLT settings.
-        triangulation: Triangulation settings.
-        max_cost_per_residual: Final cost of the IMU and reprojection residuals (prior excluded) per residual
-            above which a keyframe counts as a cost blow-up.
-        runaway_reject_ratio: A keyframe also counts as a blow-up when more than this fraction of its gated
-            features (landmarks plus new candidates) were outliers or failed the triangulation's reprojection
-            gate.
-        runaway_min_features: Fewest gated features for that rule.
-        blowup_keyframes: Consecutive blow-up keyframes that declare divergence.
-        max_position_sigma_m: Position sigma (m) beyond which divergence is declared.
-    """
-
-    window_size: int = 10
-    keyframing: KeyframeParams = field(
-        default_factory=lambda: KeyframeParams(every_n_frames=3, min_parallax_px=10.0)
-    )
-    min_track_length: int = 3
-    max_landmarks: int = 150
-    pixel_sigma_px: float = 1.0
-    huber_threshold: float = 3.0
-    outlier_threshold: float = 8.0
-    max_iterations: int = 6
-    initial_damping: float = 1e-4
-    repropagate_gyro_bias_rad_s: float = 0.01
-    repropagate_accel_bias_m_s2: float = 0.2
-    zero_velocity: ZeroVelocityParams = field(
-        default_factory=lambda: ZeroVelocityParams(
-            max_speed_m_s=float("inf"), chi2_gate=16.92, imu_failures_to_move=2
-        )
-    )
-    excitation_accel_bias_sigma_m_s2: float = 0.02
-    frontend: str = "klt"
-    klt: KltParams = field(default_factory=KltParams)
-    triangulation: TriangulationParams = field(default_factory=TriangulationParams)
-    max_cost_per_residual: float = 100.0
-    runaway_reject_ratio: float = 0.7
-    runaway_min_features: int = 5
-    blowup_keyframes: int = 5
-    max_position_sigma_m: float = 100.0
-
-
 class WindowEstimator:
     """The sliding-window optimizer (implements :class:`viotb.vio.types.Estimator`).
 
     Args:
-        calib: Camera intrinsics, extrinsics and time offset.
+        calib: Cam0 intrinsics, extrinsics (``R_BC``, ``p_BC``) and time offset.
         noise: IMU noise densities.
         params: Settings.
         frontend: Optional front end overriding ``params.frontend``.
+        calib_right: Cam1 of a stereo rig (its own ``R_BC``, ``p_BC``; synchronized with cam0), or None.
     """
 
     name = "window"
@@ -166,9 +104,11 @@ class WindowEstimator:
         noise: ImuNoise,
         params: WindowParams | None = None,
         frontend: FrontEnd | None = None,
+        calib_right: CameraCalibration | None = None,
     ) -> None:
         """Create an uninitialized estimator."""
         self.calib = calib
+        self.calib_right = calib_right
         self.noise = noise
         self.params = params if params is not None else WindowParams()
         p = self.params
@@ -177,7 +117,8 @@ class WindowEstimator:
         if not p.pixel_sigma_px > 0.0:
             raise ValueError(f"WindowParams.pixel_sigma_px must be > 0, got {p.pixel_sigma_px}")
         if frontend is None:
-            frontend = make_frontend(p.frontend, calib.camera, p.klt, "WindowParams")
+            mono = make_frontend(p.frontend, calib.camera, p.klt, "WindowParams")
+            frontend = make_stereo_frontend(mono, calib, calib_right, p.stereo)
         self.frontend = frontend
         self.initializer = InertialInitializer(calib, noise, InitParams())
         self.buffer = ImuBuffer()
@@ -202,6 +143,7 @@ class WindowEstimator:
             self._sigma_norm,
             p.huber_threshold,
             p.zero_velocity.velocity_sigma_m_s,
+            *stereo_weights(calib_right, p.pixel_sigma_px),
         )
         self._last_cost_per_res = 0.0
         self._health = HealthStatus(t_s=0.0, initialized=False)
@@ -363,7 +305,10 @@ class WindowEstimator:
         pre = preintegrate(*readings, last.x, self.noise)
         x = predict(pre, last.x)
         obs = {int(i): xy for i, xy in zip(tracks.ids.tolist(), tracks.xy_norm, strict=True)}
-        self.keyframes.append(Keyframe(self._next_key, t_s, x, obs, still))
+        obs1 = {}
+        if self.calib_right is not None:
+            obs1 = {int(i): xy for i, xy in zip(tracks.ids_right.tolist(), tracks.xy_norm_right, strict=True)}
+        self.keyframes.append(Keyframe(self._next_key, t_s, x, obs, still, obs1))
         self._next_key += 1
         self.links.append(ImuLink(pre, readings))
         # 2. New landmarks, 3. optimize, 4. marginalize.
@@ -376,15 +321,22 @@ class WindowEstimator:
 
     def _triangulate_new(self) -> None:
         p = self.params
-        cand = landmark_candidates(self.keyframes, self.landmarks, p.min_track_length, p.max_landmarks)
+        stereo = self.calib_right is not None and p.stereo_landmarks
+        cand = landmark_candidates(
+            self.keyframes, self.landmarks, p.min_track_length, p.max_landmarks, stereo
+        )
         if not cand:
             return
         xy, mask = track_matrix(self.keyframes, cand)
         R_WB = np.stack([kf.x.R_WB for kf in self.keyframes])
         p_WB = np.stack([kf.x.p_WB for kf in self.keyframes])
-        tri = triangulate(
-            R_WB @ self._R_BC, p_WB + R_WB @ self._p_BC, xy, mask, p.triangulation, self._focal_px
-        )
+        R_WC, p_WC = R_WB @ self._R_BC, p_WB + R_WB @ self._p_BC
+        if self.calib_right is not None:  # cam1 views after cam0's
+            xy1, mask1 = track_matrix(self.keyframes, cand, cam=1)
+            xy, mask = np.concatenate([xy, xy1], axis=1), np.concatenate([mask, mask1], axis=1)
+            R_WC = np.concatenate([R_WC, R_WB @ self.calib_right.R_BC])
+            p_WC = np.concatenate([p_WC, p_WB + R_WB @ np.asarray(self.calib_right.p_BC, dtype=float)])
+        tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, self._focal_px)
         for f, fid in enumerate(cand):
             if tri.valid[f]:
                 self.landmarks[fid] = tri.p_W[f].copy()
@@ -406,10 +358,11 @@ class WindowEstimator:
         lm_ids = sorted(self.landmarks)
         pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
         obs = observations(self.keyframes, lm_ids)
+        obs1 = observations(self.keyframes, lm_ids, cam=1)
         xs = [kf.x for kf in self.keyframes]
         still = [k for k, kf in enumerate(self.keyframes) if kf.still]
         no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
-        factors = self._factors(range(len(self.links)), still, no_motion, obs)
+        factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
         xs, pts, sys = levenberg_marquardt(
             xs, pts, factors, self._weights, p.max_iterations, p.initial_damping
         )
@@ -423,20 +376,25 @@ class WindowEstimator:
         self._used = len(lm_ids)
         # 6. Outliers and landmarks behind a camera leave the window with their observations.
         if len(lm_ids):
-            kf_i, lm_i, _ = obs
-            R = np.stack([x.R_WB for x in xs])[kf_i]
-            P = np.stack([x.p_WB for x in xs])[kf_i]
-            _, depth, _, _ = reprojection(R, P, pts[lm_i], self._R_BC, self._p_BC)
             bad = sys.max_err > p.outlier_threshold
-            bad[lm_i[depth < p.triangulation.min_depth_m]] = True
+            cams = [(obs, self._R_BC, self._p_BC)]
+            if self.calib_right is not None:
+                cams.append((obs1, self.calib_right.R_BC, np.asarray(self.calib_right.p_BC, dtype=float)))
+            for (kf_i, lm_i, _), R_BC, p_BC in cams:
+                R = np.stack([x.R_WB for x in xs])[kf_i]
+                P = np.stack([x.p_WB for x in xs])[kf_i]
+                _, depth, _, _ = reprojection(R, P, pts[lm_i], R_BC, p_BC)
+                bad[lm_i[depth < p.triangulation.min_depth_m]] = True
             for j in np.nonzero(bad)[0]:
                 drop_landmark(self.keyframes, self.landmarks, lm_ids[j])
             self._n_bad += int(np.sum(bad))
             self._used = len(lm_ids) - int(np.sum(bad))
         self.solve_times_s.append(time.perf_counter() - t0)
 
-    def _factors(self, links: Iterable[int], still: list[int], no_motion: list[int], obs: tuple) -> Factors:
-        """The window's factors: IMU ``links``, the prior, ``still`` / ``no_motion`` keyframes, ``obs``."""
+    def _factors(
+        self, links: Iterable[int], still: list[int], no_motion: list[int], obs: tuple, obs1: tuple
+    ) -> Factors:
+        """The factors: IMU ``links``, prior, ``still``/``no_motion`` keyframes, ``obs`` (cam0), ``obs1``."""
         key_to_k = {kf.key: k for k, kf in enumerate(self.keyframes)}
         prior_k = [] if self.prior is None else [key_to_k[key] for key in self.prior.keys]
         kfs = self.keyframes
@@ -447,19 +405,21 @@ class WindowEstimator:
             still=still,
             no_motion=[(k, kfs[k].t_s - kfs[k - 1].t_s) for k in no_motion],
             obs=obs,
+            obs_right=obs1,
         )
 
     def _marginalize_oldest(self) -> None:
         """Fold the oldest keyframe and the landmarks it saw into a new linear prior (Schur complement)."""
         old = self.keyframes[0]
-        lm_ids = sorted(f for f in old.obs if f in self.landmarks)
+        lm_ids = sorted(f for f in old.obs.keys() | old.obs_right.keys() if f in self.landmarks)
         pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
         obs = observations(self.keyframes, lm_ids)
+        obs1 = observations(self.keyframes, lm_ids, cam=1)
         xs = [kf.x for kf in self.keyframes]
         # 1. Factors touching the marginalized variables: the prior, the oldest IMU link, its zero-velocity
         #    and no-motion factors, and the observations of its landmarks.
         nm = [1] if old.still and self.keyframes[1].still else []
-        sys = linearize(xs, pts, self._factors([0], [0] if old.still else [], nm, obs), self._weights)
+        sys = linearize(xs, pts, self._factors([0], [0] if old.still else [], nm, obs, obs1), self._weights)
         # 2. Eliminate those landmarks, then the oldest keyframe.
         S, g_red, _ = schur_reduce(sys, 0.0)
         H_p, g_p, _ = schur_complement(S, g_red, np.arange(NX))

@@ -1,13 +1,14 @@
 """Bookkeeping of the sliding-window optimizer: keyframes, the IMU links between them, landmark tracks.
 
-Each :class:`Keyframe` holds its values and its observations (feature id -> normalized xy); the landmarks are
-a dict feature id -> point in W. The functions here select features to triangulate, gather observations
+Each :class:`Keyframe` holds its values and its observations (feature id -> normalized xy, one dict per
+camera: ``obs`` for cam0, ``obs_right`` for cam1 of a stereo rig); the landmarks are a dict feature id ->
+point in W. The functions here select features to triangulate, gather observations
 into the index arrays the factors take, and drop a landmark with all its observations.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from viotb.vio.preintegration import ImuPreintegration
@@ -22,8 +23,9 @@ class Keyframe:
         key: Unique id (it names the keyframe in the linear prior).
         t_s: Time (s, IMU clock).
         x: Its values.
-        obs: Feature id -> undistorted normalized coordinates, shape (2,).
+        obs: Feature id -> undistorted normalized coordinates in cam0, shape (2,).
         still: It carries a zero-velocity factor.
+        obs_right: Feature id -> undistorted normalized coordinates in cam1 (stereo rigs), shape (2,).
     """
 
     key: int
@@ -31,6 +33,11 @@ class Keyframe:
     x: ImuValues
     obs: dict[int, np.ndarray]
     still: bool = False
+    obs_right: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def camera_obs(self, cam: int) -> dict[int, np.ndarray]:
+        """Observations of camera ``cam`` (0: ``obs``, 1: ``obs_right``)."""
+        return self.obs if cam == 0 else self.obs_right
 
 
 @dataclass
@@ -47,24 +54,35 @@ class ImuLink:
 
 
 def landmark_candidates(
-    keyframes: list[Keyframe], landmarks: dict[int, np.ndarray], min_track_length: int, max_landmarks: int
+    keyframes: list[Keyframe],
+    landmarks: dict[int, np.ndarray],
+    min_track_length: int,
+    max_landmarks: int,
+    stereo: bool = False,
 ) -> list[int]:
-    """Features seen in at least ``min_track_length`` keyframes that are not landmarks yet.
+    """Features seen in at least ``min_track_length`` keyframes (cam0) that are not landmarks yet.
 
-    Longest tracks first (then by id), as many as ``max_landmarks`` leaves room for.
+    With ``stereo``, a feature also qualifies as soon as one keyframe sees it in both cameras (the stereo
+    baseline gives it a depth). Longest cam0 tracks first (then by id), as many as ``max_landmarks`` leaves
+    room for.
     """
     counts: dict[int, int] = {}
+    paired: set[int] = set()
     for kf in keyframes:
         for fid in kf.obs:
             if fid not in landmarks:
                 counts[fid] = counts.get(fid, 0) + 1
+                if stereo and fid in kf.obs_right:
+                    paired.add(fid)
     room = max_landmarks - len(landmarks)
-    cand = sorted((c for c in counts if counts[c] >= min_track_length), key=lambda f: (-counts[f], f))
+    cand = sorted(
+        (c for c in counts if counts[c] >= min_track_length or c in paired), key=lambda f: (-counts[f], f)
+    )
     return cand[: max(room, 0)]
 
 
-def track_matrix(keyframes: list[Keyframe], fids: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Observations of features ``fids`` (F) in every keyframe (K).
+def track_matrix(keyframes: list[Keyframe], fids: list[int], cam: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Observations of features ``fids`` (F) in every keyframe (K) in camera ``cam``.
 
     Returns:
         ``(xy_norm (F, K, 2), mask (F, K))``, zero where ``mask`` is False.
@@ -73,19 +91,22 @@ def track_matrix(keyframes: list[Keyframe], fids: list[int]) -> tuple[np.ndarray
     xy = np.zeros((len(fids), K, 2))
     mask = np.zeros((len(fids), K), dtype=bool)
     for k, kf in enumerate(keyframes):
+        kf_obs = kf.camera_obs(cam)
         for f, fid in enumerate(fids):
-            val = kf.obs.get(fid)
+            val = kf_obs.get(fid)
             if val is not None:
                 xy[f, k], mask[f, k] = val, True
     return xy, mask
 
 
-def observations(keyframes: list[Keyframe], lm_ids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of the landmarks ``lm_ids``."""
+def observations(
+    keyframes: list[Keyframe], lm_ids: list[int], cam: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of landmarks ``lm_ids`` in camera ``cam``."""
     index = {fid: j for j, fid in enumerate(lm_ids)}
     ks, ls, xys = [], [], []
     for k, kf in enumerate(keyframes):
-        for fid, xy in kf.obs.items():
+        for fid, xy in kf.camera_obs(cam).items():
             j = index.get(fid)
             if j is not None:
                 ks.append(k)
@@ -95,7 +116,8 @@ def observations(keyframes: list[Keyframe], lm_ids: list[int]) -> tuple[np.ndarr
 
 
 def drop_landmark(keyframes: list[Keyframe], landmarks: dict[int, np.ndarray], fid: int) -> None:
-    """Remove landmark ``fid`` and its observations in every keyframe."""
+    """Remove landmark ``fid`` and its observations (every camera) in every keyframe."""
     landmarks.pop(fid, None)
     for kf in keyframes:
         kf.obs.pop(fid, None)
+        kf.obs_right.pop(fid, None)

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from viotb.vio.camera import CameraCalibration
 from viotb.vio.marginalization import LinearPrior
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
@@ -32,6 +33,9 @@ class FactorWeights:
         huber_threshold: Huber threshold on the whitened reprojection error norm (sigmas).
         zero_velocity_sigma_m_s: Sigma (m/s) of the zero-velocity factor (and, times ``dt``, of the
             no-motion factor).
+        R_BC1: Cam1-to-body rotation of a stereo rig, shape (3, 3), or None (mono).
+        p_BC1: Cam1 origin in B (m), shape (3,), or None.
+        sigma_norm1: Cam1 measurement sigma in its normalized coordinates (pixel sigma / its focal length).
     """
 
     noise: ImuNoise
@@ -40,6 +44,23 @@ class FactorWeights:
     sigma_norm: float
     huber_threshold: float
     zero_velocity_sigma_m_s: float
+    R_BC1: np.ndarray | None = None
+    p_BC1: np.ndarray | None = None
+    sigma_norm1: float | None = None
+
+
+def stereo_weights(
+    calib_right: CameraCalibration | None, pixel_sigma_px: float
+) -> tuple[np.ndarray | None, np.ndarray | None, float | None]:
+    """``(R_BC1, p_BC1, sigma_norm1)`` of :class:`FactorWeights` for cam1 (all None for a mono rig)."""
+    if calib_right is None:
+        return None, None, None
+    cam = calib_right.camera
+    return (
+        np.asarray(calib_right.R_BC, dtype=float),
+        np.asarray(calib_right.p_BC, dtype=float),
+        pixel_sigma_px / (0.5 * (cam.fx + cam.fy)),
+    )
 
 
 @dataclass(frozen=True)
@@ -52,7 +73,8 @@ class Factors:
         prior_k: Window index of each of the prior's keyframes (``prior.keys`` order).
         still: Keyframes with a zero-velocity factor.
         no_motion: ``(k, dt_s)`` of each no-motion factor between keyframes ``k - 1`` and ``k``.
-        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of the reprojection factors.
+        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of the cam0 reprojection factors.
+        obs_right: The same for cam1 (stereo rigs; None or empty arrays for mono).
     """
 
     imu: list[tuple[int, ImuPreintegration]]
@@ -61,6 +83,7 @@ class Factors:
     still: list[int]
     no_motion: list[tuple[int, float]]
     obs: tuple[np.ndarray, np.ndarray, np.ndarray]
+    obs_right: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 @dataclass
@@ -151,42 +174,89 @@ def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeight
         g[sl] += J.T @ r_p
         cost += 0.5 * float(r_p @ r_p)
         n_res += 3
-    # c. Reprojection factors, Huber-weighted (IRLS), landmarks kept apart for the Schur complement.
+    # c. Reprojection factors of every camera, Huber-weighted (IRLS), landmarks kept apart for the Schur
+    #    complement.
     H_ll = np.zeros((L, 3, 3))
     g_l = np.zeros((L, 3))
     E = np.zeros((L, N, 6, 3))
     max_err = np.zeros(L)
-    kf_i, lm_i, xy = f.obs
-    if len(kf_i):
-        R = np.stack([x.R_WB for x in xs])[kf_i]
-        P = np.stack([x.p_WB for x in xs])[kf_i]
-        z, _, J_pose, J_pt = reprojection(R, P, pts[lm_i], w8.R_BC, w8.p_BC)
-        s = 1.0 / w8.sigma_norm
-        r = (z - xy) * s
-        J_pose, J_pt = J_pose * s, J_pt * s
-        e = np.linalg.norm(r, axis=1)
-        k_h = w8.huber_threshold
-        w = np.where(e <= k_h, 1.0, k_h / np.maximum(e, 1e-12))
-        cost += float(0.5 * np.sum(np.where(e <= k_h, e * e, 2.0 * k_h * e - k_h * k_h)))
-        n_res += 2 * len(kf_i)
-        np.maximum.at(max_err, lm_i, e)
-        Jw = J_pose * w[:, None, None]
-        JwT = np.swapaxes(Jw, 1, 2)
-        Hpp = JwT @ J_pose
-        gp = (JwT @ r[:, :, None])[:, :, 0]
-        Hpp_k = np.zeros((N, 6, 6))
-        gp_k = np.zeros((N, 6))
-        np.add.at(Hpp_k, kf_i, Hpp)
-        np.add.at(gp_k, kf_i, gp)
-        pidx = pose_index(N).reshape(N, 6)
-        for k in range(N):
-            H[np.ix_(pidx[k], pidx[k])] += Hpp_k[k]
-            g[pidx[k]] += gp_k[k]
-        JptT = np.swapaxes(J_pt * w[:, None, None], 1, 2)
-        np.add.at(H_ll, lm_i, JptT @ J_pt)
-        np.add.at(g_l, lm_i, (JptT @ r[:, :, None])[:, :, 0])
-        np.add.at(E, (lm_i, kf_i), JwT @ J_pt)
+    cams = [(f.obs, w8.R_BC, w8.p_BC, w8.sigma_norm)]
+    if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
+        cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1))
+    for obs, R_BC, p_BC, sigma_norm in cams:
+        c, n = _add_reprojection(H, g, H_ll, g_l, E, max_err, xs, pts, obs, R_BC, p_BC, sigma_norm, w8)
+        cost += c
+        n_res += n
     return LinearSystem(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err, cost - prior_cost)
+
+
+def _add_reprojection(
+    H: np.ndarray,
+    g: np.ndarray,
+    H_ll: np.ndarray,
+    g_l: np.ndarray,
+    E: np.ndarray,
+    max_err: np.ndarray,
+    xs: list[ImuValues],
+    pts: np.ndarray,
+    obs: tuple[np.ndarray, np.ndarray, np.ndarray],
+    R_BC: np.ndarray,
+    p_BC: np.ndarray,
+    sigma_norm: float,
+    w8: FactorWeights,
+) -> tuple[float, int]:
+    """Add one camera's Huber-weighted reprojection factors to the system (in place).
+
+    Args:
+        H: Keyframe information (N NX, N NX).
+        g: Keyframe gradient (N NX,).
+        H_ll: Landmark information blocks (L, 3, 3).
+        g_l: Landmark gradients (L, 3).
+        E: Pose-landmark blocks (L, N, 6, 3).
+        max_err: Largest whitened error per landmark (L,), raised in place.
+        xs: Keyframe values (N).
+        pts: Landmarks in W (m), shape (L, 3).
+        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` in this camera.
+        R_BC: This camera's rotation to the body, shape (3, 3).
+        p_BC: Its origin in B (m), shape (3,).
+        sigma_norm: Its measurement sigma in normalized coordinates.
+        w8: The Huber threshold.
+
+    Returns:
+        ``(robust cost, residual count)``.
+    """
+    N = len(xs)
+    kf_i, lm_i, xy = obs
+    if not len(kf_i):
+        return 0.0, 0
+    R = np.stack([x.R_WB for x in xs])[kf_i]
+    P = np.stack([x.p_WB for x in xs])[kf_i]
+    z, _, J_pose, J_pt = reprojection(R, P, pts[lm_i], R_BC, p_BC)
+    s = 1.0 / sigma_norm
+    r = (z - xy) * s
+    J_pose, J_pt = J_pose * s, J_pt * s
+    e = np.linalg.norm(r, axis=1)
+    k_h = w8.huber_threshold
+    w = np.where(e <= k_h, 1.0, k_h / np.maximum(e, 1e-12))
+    cost = float(0.5 * np.sum(np.where(e <= k_h, e * e, 2.0 * k_h * e - k_h * k_h)))
+    np.maximum.at(max_err, lm_i, e)
+    Jw = J_pose * w[:, None, None]
+    JwT = np.swapaxes(Jw, 1, 2)
+    Hpp = JwT @ J_pose
+    gp = (JwT @ r[:, :, None])[:, :, 0]
+    Hpp_k = np.zeros((N, 6, 6))
+    gp_k = np.zeros((N, 6))
+    np.add.at(Hpp_k, kf_i, Hpp)
+    np.add.at(gp_k, kf_i, gp)
+    pidx = pose_index(N).reshape(N, 6)
+    for k in range(N):
+        H[np.ix_(pidx[k], pidx[k])] += Hpp_k[k]
+        g[pidx[k]] += gp_k[k]
+    JptT = np.swapaxes(J_pt * w[:, None, None], 1, 2)
+    np.add.at(H_ll, lm_i, JptT @ J_pt)
+    np.add.at(g_l, lm_i, (JptT @ r[:, :, None])[:, :, 0])
+    np.add.at(E, (lm_i, kf_i), JwT @ J_pt)
+    return cost, 2 * len(kf_i)
 
 
 def schur_reduce(sys: LinearSystem, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

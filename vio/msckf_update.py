@@ -1,0 +1,228 @@
+"""The MSCKF feature update (Mourikis and Roumeliotis, ICRA 2007, sec. III-D/E; open_vins ``UpdaterMSCKF``).
+
+For every feature whose track ended (or that is about to lose its oldest clone): triangulate it from all its
+views, stack the reprojection residuals of every view, project the feature out with the left null space of
+its Jacobian, gate each feature with a chi-square test, compress and update.
+
+A view is a (clone, camera) pair. On a stereo rig cam1's views come after cam0's (view ``K + k`` is cam1 at
+clone ``k``), each with its own extrinsics ``(R_BCi, p_BCi)``::
+
+    p_Ci = R_BCi^T (R_WB_k^T (p_f_W - p_WB_k) - p_BCi),    z = p_Ci[:2] / p_Ci[2]
+
+so the pose Jacobian of a cam1 row lands in the same clone block as cam0's. Rows are whitened to cam0's
+normalized noise (cam1 rows times ``f1 / f0``) so the isotropic noise model holds. When the filter estimates
+the cam0 extrinsic, cam1's extrinsic is held at its calibration (its rows have no extrinsic column).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from viotb.vio.camera import CameraCalibration
+from viotb.vio.feature_database import FeatureDatabase
+from viotb.vio.msckf_params import MsckfParams
+from viotb.vio.state import EXTRINSIC_BLOCK, State, ekf_update
+from viotb.vio.triangulation import triangulate
+from viotb.vio.update_helpers import (
+    Chi2Table,
+    FeatureJacobian,
+    clone_unobservable_basis,
+    feature_jacobian,
+    measurement_compress,
+    nullspace_project,
+    observability_constrain,
+)
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    """Bookkeeping of one MSCKF update.
+
+    Attributes:
+        candidates: Features considered.
+        triangulated: Features that triangulated.
+        used: Features that passed the gate and entered the update.
+        rejected: Features rejected by the chi-square gate.
+        rows: Measurement rows after null-space projection (before compression).
+        inconsistent: Features whose views admit no common point (triangulation reprojection error above
+            its gate), a divergence symptom when they dominate.
+        nis_per_dof: Mean over the features that passed the gate of ``chi2 / dof`` (normalized innovation
+            squared per degree of freedom; ~1 when consistent), NaN when none passed.
+        nis_per_dof_all: The same mean over every triangulated candidate (rejected ones included).
+    """
+
+    candidates: int = 0
+    triangulated: int = 0
+    used: int = 0
+    rejected: int = 0
+    rows: int = 0
+    inconsistent: int = 0
+    nis_per_dof: float = float("nan")
+    nis_per_dof_all: float = float("nan")
+
+
+def _stacked_jacobian(
+    R_WB: np.ndarray,
+    p_WB: np.ndarray,
+    st: State,
+    calib_right: CameraCalibration | None,
+    p_f: np.ndarray,
+) -> FeatureJacobian:
+    """Predictions and Jacobians of all views (cam0's K, then cam1's K), leading shape (F, C K).
+
+    Args:
+        R_WB: Clone orientations, shape (K, 3, 3).
+        p_WB: Clone positions (m) in W, shape (K, 3).
+        st: The state (cam0 extrinsic ``st.R_BC``, ``st.p_BC``).
+        calib_right: Cam1 calibration, or None for a mono rig.
+        p_f: Feature positions (m) in W, shape (F, 3).
+    """
+    jac0 = feature_jacobian(R_WB[None], p_WB[None], st.R_BC, st.p_BC, p_f[:, None, :])
+    if calib_right is None:
+        return jac0
+    R_BC1 = np.asarray(calib_right.R_BC, dtype=float)
+    p_BC1 = np.asarray(calib_right.p_BC, dtype=float)
+    jac1 = feature_jacobian(R_WB[None], p_WB[None], R_BC1, p_BC1, p_f[:, None, :])
+    return FeatureJacobian(
+        np.concatenate([jac0.z_norm, jac1.z_norm], axis=1),
+        np.concatenate([jac0.depth_m, jac1.depth_m], axis=1),
+        np.concatenate([jac0.H_pose, jac1.H_pose], axis=1),
+        np.concatenate([jac0.H_extrinsic, np.zeros_like(jac1.H_extrinsic)], axis=1),
+        np.concatenate([jac0.H_feature, jac1.H_feature], axis=1),
+    )
+
+
+def msckf_update(
+    st: State,
+    db: FeatureDatabase,
+    p: MsckfParams,
+    chi2_table: Chi2Table,
+    t_now: float,
+    focal_px: float,
+    calib_right: CameraCalibration | None = None,
+    focal_right_px: float | None = None,
+) -> UpdateStats:
+    """Update ``st`` with the features that leave the window at ``t_now`` (they leave ``db`` too).
+
+    Args:
+        st: The filter state (updated in place).
+        db: Feature database (one layer per camera).
+        p: Settings.
+        chi2_table: 95 % chi-square quantiles.
+        t_now: Time (s, camera clock) of the newest clone.
+        focal_px: Cam0 focal length (px); ``p.pixel_sigma_px / focal_px`` is the normalized noise sigma.
+        calib_right: Cam1 calibration for a stereo rig (None: mono, cam1 layer ignored).
+        focal_right_px: Cam1 focal length (px) (default ``focal_px``).
+
+    Returns:
+        What the update did.
+    """
+    stereo = calib_right is not None and db.num_cameras == 2
+    # 0. Features whose tracks ended, plus those seen in the oldest clone when it is about to go.
+    lost = db.features_lost(t_now)
+    cand = lost
+    times = st.clone_times
+    if len(st.clones) > p.max_clones:
+        cand = np.union1d(lost, db.features_seen_at(float(times[0])))
+    if len(cand) == 0:
+        return UpdateStats()
+    # 1. Clean: observations at clone times only (the database is keyed by clone time) and tracks
+    #    long enough (views of every camera count); the other lost features can never be used.
+    lengths = db.track_lengths(cand)
+    usable = lengths >= p.min_track_length
+    db.remove_features(lost[~np.isin(lost, cand[usable])])
+    cand, lengths = cand[usable], lengths[usable]
+    if len(cand) == 0:
+        return UpdateStats()
+    order = np.argsort(-lengths, kind="stable")[: p.max_features_per_update]
+    cand = cand[order]
+    xy, mask = db.observations(cand, times)
+    clones = list(st.clones.values())
+    R_WB = np.stack([c.R_WB for c in clones])
+    p_WB = np.stack([c.p_WB for c in clones])
+    R_WC = R_WB @ st.R_BC
+    p_WC = p_WB + R_WB @ st.p_BC
+    K = len(times)
+    if stereo:
+        assert calib_right is not None
+        xy1, mask1 = db.observations(cand, times, cam=1)
+        stereo = bool(mask1.any())  # without cam1 views this is exactly the mono update
+    if stereo:
+        assert calib_right is not None
+        xy, mask = np.concatenate([xy, xy1], axis=1), np.concatenate([mask, mask1], axis=1)
+        R_WC = np.concatenate([R_WC, R_WB @ calib_right.R_BC])
+        p_WC = np.concatenate([p_WC, p_WB + R_WB @ np.asarray(calib_right.p_BC, dtype=float)])
+    db.remove_features(cand)
+    # 2. Triangulate every feature from all its views in the current clone estimates.
+    tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, focal_px)
+    ok = tri.valid
+    n_cand = len(cand)
+    n_bad = int(np.sum(tri.rms_error_px >= p.triangulation.max_reprojection_error_px))
+    if not np.any(ok):
+        return UpdateStats(candidates=n_cand, inconsistent=n_bad)
+    xy, mask, p_f = xy[ok], mask[ok], tri.p_W[ok]
+    F, V = mask.shape
+    right = calib_right if stereo else None
+    # 3. Residuals at the current estimates; Jacobians where ``update_linearization`` says.
+    cur = _stacked_jacobian(R_WB, p_WB, st, right, p_f)
+    if p.use_fej and p.update_linearization == "first_estimates":
+        R_fej = np.stack([c.R_WB_fej for c in clones])
+        p_fej = np.stack([c.p_WB_fej for c in clones])
+        jac = _stacked_jacobian(R_fej, p_fej, st, right, p_f)
+    else:
+        jac = cur
+    w = mask[..., None].astype(float)
+    if stereo and focal_right_px is not None and focal_right_px != focal_px:
+        w[:, K:] *= focal_right_px / focal_px  # whiten cam1 rows to cam0's normalized sigma
+    r = ((xy - cur.z_norm) * w).reshape(F, 2 * V)
+    H_f = (jac.H_feature * w[..., None]).reshape(F, 2 * V, 3)
+    H_x = np.zeros((F, 2 * V, st.dim))
+    H_pose = jac.H_pose * w[..., None]
+    for k, t in enumerate(times):
+        o = st.clone_block(float(t)).offset
+        for v in range(k, V, K):  # this clone's view in every camera
+            H_x[:, 2 * v : 2 * v + 2, o : o + 6] = H_pose[:, v]
+    if st.has_block(EXTRINSIC_BLOCK):
+        o = st.block(EXTRINSIC_BLOCK).offset
+        H_x[:, :, o : o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * V, 6)
+    # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
+    H_o, r_o = nullspace_project(H_x, H_f, r)
+    if p.use_fej and p.update_linearization == "current_oc":
+        # 4b. Observability constraint: no information on global position/yaw at the first estimates,
+        #     the directions the FEJ propagation keeps unobservable (Hesch et al. TRO 2014, OC-EKF).
+        offsets = np.array([st.clone_block(float(t)).offset for t in times])
+        R_fej = np.stack([c.R_WB_fej for c in clones])
+        p_fej = np.stack([c.p_WB_fej for c in clones])
+        U = clone_unobservable_basis(R_fej, p_fej, offsets, st.dim)
+        H_o = observability_constrain(H_o, U)
+    # 5. Chi-square gate at 95 % per feature with dof = 2 m - 3 (m views over all cameras).
+    P = st.cov
+    sigma2 = (p.pixel_sigma_px / focal_px) ** 2
+    HP = (H_o.reshape(-1, st.dim) @ P).reshape(H_o.shape)
+    S = HP @ np.swapaxes(H_o, 1, 2)
+    S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += sigma2
+    chi2 = np.einsum("fi,fi->f", r_o, np.linalg.solve(S, r_o[..., None])[..., 0])
+    dof = 2 * mask.sum(axis=1) - 3
+    passed = chi2 < p.chi2_multiplier * chi2_table(dof)
+    n_pass = int(passed.sum())
+    nis = chi2 / dof
+    stats = UpdateStats(
+        n_cand,
+        F,
+        n_pass,
+        int(F - n_pass),
+        int(dof[passed].sum()),
+        n_bad,
+        float(np.mean(nis[passed])) if n_pass else float("nan"),
+        float(np.mean(nis)),
+    )
+    if n_pass == 0:
+        return stats
+    # 6. Stack, compress (QR) and update.
+    H_all = H_o[passed].reshape(-1, st.dim)
+    r_all = r_o[passed].reshape(-1)
+    H_c, r_c = measurement_compress(H_all, r_all)
+    ekf_update(st, H_c, r_c, sigma2)
+    # 7. Marginalizing the oldest clone is done by the caller after this update.
+    return stats
