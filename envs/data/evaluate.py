@@ -12,10 +12,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from viotb.envs.data import diagnosis
 from viotb.envs.data.euroc import EurocDataset, load_image, read_euroc
 from viotb.envs.data.tum import write_tum
-from viotb.envs.run.replay import replay
+from viotb.envs.run.replay import MonitoredRun, replay
+from viotb.vio.camera import CameraCalibration
 from viotb.vio.factory import make_estimator
+from viotb.vio.health import HealthMonitor, HealthParams
 from viotb.vio.lie import quat_wxyz_to_rotmat, rotmat_to_quat_wxyz
 from viotb.vio.metrics import evaluate_trajectory
 from viotb.vio.msckf_params import MsckfParams
@@ -38,6 +41,14 @@ class EvalOptions:
         max_frames: Stop after this many frames (None = all).
         msckf: MSCKF settings (None: the defaults).
         window: Window-optimizer settings (None: the defaults).
+        monitor: Run the health monitor beside the estimator (result ``conditions``).
+        calibrate: Estimate the camera-IMU time offset and extrinsics online (``msckf`` only; result
+            ``calibration``).
+        health: Monitor thresholds (None: the defaults, with the NIS reference of
+            :func:`viotb.envs.data.diagnosis.expected_nis_per_dof`).
+        report: Write the report (PNGs, ``report.json``) into the output folder
+            (:mod:`viotb.envs.tools.eval_report`).
+        rerun: With ``report``, also write a rerun recording ``eval.rrd``.
     """
 
     estimator: str = "msckf"
@@ -47,6 +58,11 @@ class EvalOptions:
     max_frames: int | None = None
     msckf: MsckfParams | None = None
     window: WindowParams | None = None
+    monitor: bool = True
+    calibrate: bool = False
+    health: HealthParams | None = None
+    report: bool = False
+    rerun: bool = False
 
 
 def _interpolate_pose(gt: TrajectoryArrays, t_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -72,8 +88,14 @@ def _truth_estimate(ds: EurocDataset, t_s: float) -> StateEstimate:
     return StateEstimate(t_s=t_s, R_WB=R_WB, p_WB=p_WB, v_WB=v_WB)
 
 
-def _frame(ds: EurocDataset, i: int, opts: EvalOptions, rng: np.random.Generator) -> CameraFrame:
-    """Camera frame ``i``: the image, or simulated features from the dataset's landmarks."""
+def _frame(
+    ds: EurocDataset, i: int, opts: EvalOptions, rng: np.random.Generator, true_calib: CameraCalibration
+) -> CameraFrame:
+    """Camera frame ``i``: the image, or simulated features from the dataset's landmarks.
+
+    The features are projected with ``true_calib`` (a recording's true calibration, which a failure
+    recording's ``sensor.yaml`` does not tell).
+    """
     t_cam = float(ds.cam_t_s[i])
     if opts.frontend != "sim":
         return CameraFrame(t_s=t_cam, image=load_image(ds, i))
@@ -84,48 +106,80 @@ def _frame(ds: EurocDataset, i: int, opts: EvalOptions, rng: np.random.Generator
             f"{ds.root}: the 'sim' front end needs mav0/sim_landmarks0/data.csv and ground truth; "
             "use --frontend klt on real data"
         )
-    R_WB, p_WB = _interpolate_pose(ds.groundtruth, t_cam + ds.calib.time_offset_s)
-    R_WC = R_WB @ ds.calib.R_BC
-    p_WC = p_WB + R_WB @ ds.calib.p_BC
-    obs = project_landmarks(ds.landmarks_W, R_WC, p_WC, ds.calib.camera, rng, opts.sim_pixel_sigma_px)
+    R_WB, p_WB = _interpolate_pose(ds.groundtruth, t_cam + true_calib.time_offset_s)
+    R_WC = R_WB @ true_calib.R_BC
+    p_WC = p_WB + R_WB @ true_calib.p_BC
+    obs = project_landmarks(ds.landmarks_W, R_WC, p_WC, true_calib.camera, rng, opts.sim_pixel_sigma_px)
     return CameraFrame(t_s=t_cam, features=obs)
 
 
-def run_estimator(
-    ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | None = None
-) -> tuple[list[StateEstimate], list[float], list[dict]]:
-    """Replay a dataset through an estimator (:func:`viotb.envs.run.replay.replay`).
+def _monitor(ds: EurocDataset, opts: EvalOptions, filter_sigma_px: float) -> HealthMonitor | None:
+    """The health monitor of a run (None when ``opts.monitor`` is off)."""
+    if not opts.monitor:
+        return None
+    if opts.health is not None:
+        return HealthMonitor(opts.health)
+    expected = diagnosis.expected_nis_per_dof(
+        opts.frontend, filter_sigma_px, opts.sim_pixel_sigma_px, ds.landmarks_W is not None
+    )
+    return HealthMonitor(HealthParams(nis_per_dof_expected=expected))
 
-    Returns:
-        Estimates at each processed frame (after initialization, before any divergence), per-frame wall time
-        (ms), and per-frame health records (dicts with t_s, tracked_features, updated_features,
-        chi2_rejections, diverged, reason, conditions).
+
+def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | None = None) -> MonitoredRun:
+    """Replay a dataset through an estimator, with the health monitor when ``opts.monitor``.
+
+    Raises:
+        ValueError: ``opts.calibrate`` with an estimator other than ``msckf``.
     """
+    params = opts.msckf
+    if opts.calibrate:
+        if opts.estimator != "msckf":
+            raise ValueError(
+                f"--calibrate needs the msckf estimator (online time-offset and extrinsic calibration); "
+                f"{opts.estimator!r} has none"
+            )
+        params = (params if params is not None else MsckfParams()).with_online_calibration()
     est = make_estimator(
         opts.estimator,
         ds.calib,
         ds.imu_noise,
         frontend=opts.frontend,
-        params=opts.msckf,
+        params=params,
         window_params=opts.window,
     )
+    filter_sigma = (params if params is not None else MsckfParams()).pixel_sigma_px
+    true_calib = diagnosis.read_true_calibration(ds.root) or ds.calib
     rng = np.random.default_rng(opts.seed)
     n_frames = len(ds.cam_t_s) if opts.max_frames is None else min(opts.max_frames, len(ds.cam_t_s))
     frame_t_imu = ds.cam_t_s[:n_frames] + ds.calib.time_offset_s
     # Start the IMU one second before the first frame (static initialization needs a still window).
     imu_start = float(frame_t_imu[0]) - 1.0 if n_frames else None
     truth_at = (lambda t: _truth_estimate(ds, t)) if opts.estimator == "ground-truth" else None
-    frames = (_frame(ds, k, opts, rng) for k in range(n_frames))
-    run = replay(
+    frames = (_frame(ds, k, opts, rng, true_calib) for k in range(n_frames))
+    return replay(
         est,
         ds.imu,
         frames,
         ds.calib.time_offset_s,
+        monitor=_monitor(ds, opts, filter_sigma),
         imu_start_s=imu_start,
         truth_at=truth_at,
         progress=progress,
         n_frames=n_frames,
     )
+
+
+def run_estimator(
+    ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | None = None
+) -> tuple[list[StateEstimate], list[float], list[dict]]:
+    """Replay a dataset through an estimator (:func:`run_monitored`).
+
+    Returns:
+        Estimates at each processed frame (after initialization, before any divergence), per-frame wall time
+        (ms), and per-frame health records (dicts with t_s, tracked_features, updated_features,
+        chi2_rejections, diverged, reason, conditions).
+    """
+    run = run_monitored(ds, opts, progress)
     health = [
         {
             "t_s": float(t),
@@ -171,7 +225,15 @@ def evaluate_dataset(
         ``ms_per_frame_p99``, ``frames``, ``estimator``, ``frontend``, ``diverged``, ``reason``.
     """
     ds = read_euroc(Path(dataset_dir))
-    estimates, ms, health = run_estimator(ds, opts, progress)
+    run = run_monitored(ds, opts, progress)
+    ms = run.ms_per_frame
+    health = [
+        {"diverged": h.diverged, "reason": h.reason, "tracked_features": h.tracked_features}
+        for h in run.health
+    ]
+    estimates = [
+        e for e, h in zip(run.estimates, run.health, strict=True) if e is not None and not h.diverged
+    ]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     est_traj = estimates_to_trajectory(estimates)
@@ -196,4 +258,17 @@ def evaluate_dataset(
         pos_covs = np.array([e.cov_position_W_m2 for e in estimates])
         result.update(evaluate_trajectory(est_traj, gt, pos_covs=pos_covs))
     result["frames"] = len(ms)
+    trace = diagnosis.trace_from_run(run)
+    if run.monitor is not None:
+        result["conditions"] = diagnosis.conditions_json(run.monitor.report(), trace)
+        result["monitor_ms_per_frame"] = run.monitor_ms / max(len(ms), 1)
+    if opts.calibrate:
+        result["calibration"] = diagnosis.calibration_json(
+            run, ds.calib, diagnosis.read_true_calibration(ds.root)
+        )
+    if opts.report:
+        from viotb.envs.tools.eval_report import write_eval_report
+
+        params = run.monitor.params if run.monitor is not None else None
+        result["report"] = write_eval_report(out_dir, result, trace, ds, params, rerun=opts.rerun)
     return result

@@ -21,7 +21,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.data.euroc_writer import write_euroc
+from viotb.envs.data.euroc_writer import write_euroc, write_true_calibration
 from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
@@ -160,6 +160,7 @@ def record_scenario(
             landmarks_W,
             imu_rate_hz=imu_params.rate_hz,
         )
+        write_true_calibration(mav0, calib)
     finally:
         renderer.close()
     wall_s = time.perf_counter() - wall_start
