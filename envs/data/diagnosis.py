@@ -15,7 +15,7 @@ is conservative there.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -62,8 +62,17 @@ class EvalTrace:
     yaw_sigma_rad: np.ndarray
 
 
-def trace_from_run(run: MonitoredRun) -> EvalTrace:
-    """The series of a replay (estimates after divergence are dropped, as from the metrics)."""
+def trace_from_run(run: MonitoredRun, conditions_from: MonitoredRun | None = None) -> EvalTrace:
+    """The series of a replay (estimates after divergence are dropped, as from the metrics).
+
+    Args:
+        run: The replay.
+        conditions_from: Take the active conditions from this replay of the same frames instead (the first
+            pass of a two-pass calibration, whose monitor judged the file's calibration).
+    """
+    src = (
+        run if conditions_from is None or len(conditions_from.active) != len(run.active) else conditions_from
+    )
     ests = [e for e, h in zip(run.estimates, run.health, strict=True) if e is not None and not h.diverged]
     yaw_sigma = []
     for e in ests:
@@ -73,7 +82,7 @@ def trace_from_run(run: MonitoredRun) -> EvalTrace:
         frame_t_s=np.asarray(run.frame_t_imu_s, dtype=float),
         tracked_features=np.array([h.tracked_features for h in run.health], dtype=int),
         nis_per_dof=np.array([float(h.nis_per_dof_all) for h in run.health], dtype=float),
-        active=tuple(tuple(sorted(a)) for a in run.active),
+        active=tuple(tuple(sorted(a)) for a in src.active),
         est_t_s=np.array([e.t_s for e in ests], dtype=float),
         p_WB=np.array([e.p_WB for e in ests], dtype=float).reshape(-1, 3),
         R_WB=np.array([e.R_WB for e in ests], dtype=float).reshape(-1, 3, 3),
@@ -147,22 +156,50 @@ def _last_calibration(run: MonitoredRun) -> CalibrationDrift | None:
     return next((h.calibration for h in reversed(run.health) if h.calibration is not None), None)
 
 
+def calibrated(calib: CameraCalibration, run: MonitoredRun) -> CameraCalibration:
+    """``calib`` (what ``run`` was given) moved to ``run``'s final online estimate (unchanged without one)."""
+    c = _last_calibration(run)
+    if c is None:
+        return calib
+    out = calib
+    if np.isfinite(c.time_offset_s):
+        out = replace(out, time_offset_s=calib.time_offset_s + float(c.time_offset_s))
+    if np.all(np.isfinite(c.rotation_BC_rad)):
+        out = replace(out, R_BC=calib.R_BC @ exp_so3(np.asarray(c.rotation_BC_rad, dtype=float)))
+    if np.all(np.isfinite(c.translation_BC_m)):
+        out = replace(out, p_BC=calib.p_BC + np.asarray(c.translation_BC_m, dtype=float))
+    return out
+
+
 def calibration_json(
-    run: MonitoredRun, given: CameraCalibration, truth: CameraCalibration | None
+    run: MonitoredRun,
+    run_given: CameraCalibration,
+    given: CameraCalibration,
+    truth: CameraCalibration | None,
+    passes: int = 1,
 ) -> dict | None:
     """Online calibration at the end of the run against the file's (``given``), with sigmas; None without one.
 
     Rotation: axis-angle ``log(R_BC,given^T R_BC,est)`` (deg, camera frame); translation ``p_BC,est -
     p_BC,given`` (cm, body frame). With ``truth`` (a recording's true calibration) a ``truth`` block adds the
     errors of the estimates against it.
+
+    Args:
+        run: The (last) replay with online calibration.
+        run_given: The calibration ``run`` started from (the file's, or an earlier pass's estimate).
+        given: The file's calibration.
+        truth: The true calibration, or None.
+        passes: Number of passes that led to the estimate (reported).
     """
     c = _last_calibration(run)
     if c is None:
         return None
-    rot = np.asarray(c.rotation_BC_rad, dtype=float)
-    dp = np.asarray(c.translation_BC_m, dtype=float)
+    est = calibrated(run_given, run)
+    rot = log_so3(given.R_BC.T @ est.R_BC)
+    dp = est.p_BC - given.p_BC
     out: dict = {
-        "time_offset_ms": (given.time_offset_s + c.time_offset_s) * 1e3,
+        "passes": int(passes),
+        "time_offset_ms": est.time_offset_s * 1e3,
         "time_offset_given_ms": given.time_offset_s * 1e3,
         "time_offset_sigma_ms": c.time_offset_sigma_s * 1e3,
         "extrinsic_rotation_deg": float(np.rad2deg(np.linalg.norm(rot))),
@@ -175,16 +212,13 @@ def calibration_json(
         "p_BC,given in the body frame; t_imu = t_cam + time_offset",
     }
     if truth is not None:
-        R_est = given.R_BC @ exp_so3(rot) if np.all(np.isfinite(rot)) else given.R_BC
-        p_est = given.p_BC + dp if np.all(np.isfinite(dp)) else given.p_BC
-        est_offset_s = given.time_offset_s + c.time_offset_s
-        if not np.isfinite(est_offset_s):
-            est_offset_s = given.time_offset_s
         out["truth"] = {
             "time_offset_ms": truth.time_offset_s * 1e3,
             "extrinsic_rotation_vector_deg": np.rad2deg(log_so3(given.R_BC.T @ truth.R_BC)).tolist(),
-            "time_offset_error_ms": (est_offset_s - truth.time_offset_s) * 1e3,
-            "extrinsic_rotation_error_deg": float(np.rad2deg(np.linalg.norm(log_so3(truth.R_BC.T @ R_est)))),
-            "extrinsic_translation_error_cm": float(np.linalg.norm(p_est - truth.p_BC) * 100.0),
+            "time_offset_error_ms": (est.time_offset_s - truth.time_offset_s) * 1e3,
+            "extrinsic_rotation_error_deg": float(
+                np.rad2deg(np.linalg.norm(log_so3(truth.R_BC.T @ est.R_BC)))
+            ),
+            "extrinsic_translation_error_cm": float(np.linalg.norm(est.p_BC - truth.p_BC) * 100.0),
         }
     return out

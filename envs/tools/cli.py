@@ -110,18 +110,38 @@ def eval_(
     out: Path = typer.Option(Path("viotb_out/eval"), "--out", help="Output folder for the TUM files."),
     frontend: str = typer.Option("klt", "--frontend", help="klt (images) | sim (recorded landmarks, fast)."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    calibrate: bool = typer.Option(
+        False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (msckf only)."
+    ),
+    monitor: bool = typer.Option(True, "--monitor/--no-monitor", help="Run the health monitor (default on)."),
+    report: bool = typer.Option(True, "--report/--no-report", help="Write PNGs and report.json into --out."),
+    rerun: bool = typer.Option(False, "--rerun", help="Also write a rerun recording OUT/eval.rrd."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
-    """Run an estimator on a EuRoC folder, write TUM trajectories and print ATE/RPE/NEES/timing."""
+    """Run an estimator on a EuRoC folder: TUM trajectories, ATE/RPE/NEES/timing, the monitor's diagnosis."""
     from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 
-    opts = EvalOptions(estimator=estimator, frontend=frontend, max_frames=max_frames)
+    if calibrate and estimator != "msckf":
+        _fail(f"--calibrate needs --estimator msckf: {estimator!r} has no online calibration")
+    opts = EvalOptions(
+        estimator=estimator,
+        frontend=frontend,
+        max_frames=max_frames,
+        monitor=monitor,
+        calibrate=calibrate,
+        report=report,
+        rerun=rerun,
+    )
     try:
         with _progress(f"eval {estimator}", not as_json) as progress:
             result = evaluate_dataset(dataset, out, opts, progress)
     except (ValueError, FileNotFoundError) as exc:
         _fail(str(exc))
     _emit(result, as_json, f"{estimator} on {dataset} -> {out}")
+    if not as_json:
+        from viotb.envs.tools.eval_report import print_diagnosis
+
+        print_diagnosis(Console(), result)
 
 
 @app.command()

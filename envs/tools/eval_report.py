@@ -236,3 +236,35 @@ def write_eval_report(
     tmp.write_text(text + "\n")
     tmp.replace(out / "report.json")
     return paths
+
+
+def print_diagnosis(console: object, result: dict) -> None:
+    """Print the monitor's conditions and the online calibration of an eval result (rich console)."""
+    from rich.markup import escape
+
+    conds = result.get("conditions")
+    if conds is not None:
+        if not conds:
+            console.print("[green]monitor: no condition raised[/green]")
+        for c in conds:
+            console.print(
+                f"[bold yellow]{c['name']}[/bold yellow] first at {c['t_s_first']:.2f} s "
+                f"({c['t_since_start_s']:.2f} s after the first frame): {escape(c['evidence'])}"
+            )
+    cal = result.get("calibration")
+    if cal:
+        rot = ", ".join(f"{v:+.2f}" for v in cal["extrinsic_rotation_vector_deg"])
+        rsig = ", ".join(f"{v:.2f}" for v in cal["extrinsic_rotation_sigma_deg"])
+        tr = ", ".join(f"{v:+.2f}" for v in cal["extrinsic_translation_vector_cm"])
+        tsig = ", ".join(f"{v:.2f}" for v in cal["extrinsic_translation_sigma_cm"])
+        offset = (
+            f"time offset {cal['time_offset_ms']:.2f} ms (given {cal['time_offset_given_ms']:.2f}, "
+            f"sigma {cal['time_offset_sigma_ms']:.2f})"
+        )
+        console.print(
+            f"calibration: {offset}; rotation vs the file's T_BS {cal['extrinsic_rotation_deg']:.2f} deg "
+            f"({rot}) +- ({rsig}); translation {cal['extrinsic_translation_cm']:.2f} cm ({tr}) +- ({tsig})"
+        )
+    rep = result.get("report")
+    if rep:
+        console.print("report: " + ", ".join(str(v) for v in rep.values() if v))
