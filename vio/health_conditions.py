@@ -89,6 +89,8 @@ class HealthParams:
         min_excitation_speed_m_s: The flag is raised only while the latest estimated speed (m/s) exceeds
             this (a scale error moves the position only in proportion to the distance flown).
         excitation_hold_s: The test must fail continuously for this long (s) before the flag is raised.
+        excitation_check_s: The excitation test runs every this many seconds of IMU time (each run reads
+            the whole window; at every 200 Hz sample it cost the monitor ~0.3 ms per sample).
         min_tracked_features: Tracked-feature count below which a frame counts as poor.
         poverty_frames: Consecutive poor frames that raise ``feature_poverty``.
         min_saturated_samples: Saturated IMU samples that raise ``imu_saturation``.
@@ -102,6 +104,10 @@ class HealthParams:
         min_sync_speed_m_s: The window's mean linear speed (m/s) must exceed this...
         min_sync_rate_rad_s: ...or its mean angular speed (rad/s) this (the errors vanish at rest).
         sync_min_features: Updates with fewer gated features (used + rejected) are ignored.
+        nis_per_dof_expected: NIS per dof of a consistent run; the window mean is divided by it before the
+            ``max_nis_per_dof`` test. 1 when the filter is told the front end's real pixel noise;
+            ``(sigma_real / sigma_told)^2`` when not (``viotb eval`` runs the MSCKF at 1 px on KLT tracks of
+            ~0.3 px: :func:`viotb.envs.data.diagnosis.expected_nis_per_dof`).
         init_timeout_s: Seconds of IMU data without an estimate that raise ``initialization_failure``.
         gravity_norm_tol_m_s2: Largest allowed difference (m/s^2) between the mean accelerometer norm in the
             first still second and 9.81 when the estimator initializes (a miscalibrated accelerometer or a
@@ -122,6 +128,7 @@ class HealthParams:
     min_gyro_norm_rad_s: float = 0.2
     min_excitation_speed_m_s: float = 0.2
     excitation_hold_s: float = 0.5
+    excitation_check_s: float = 0.05
     min_tracked_features: int = 20
     poverty_frames: int = 5
     min_saturated_samples: int = 1
@@ -130,6 +137,7 @@ class HealthParams:
     min_sync_speed_m_s: float = 0.3
     min_sync_rate_rad_s: float = 0.3
     sync_min_features: int = 5
+    nis_per_dof_expected: float = 1.0
     init_timeout_s: float = 5.0
     gravity_norm_tol_m_s2: float = 0.3
     max_init_gyro_bias_rad_s: float = 0.2

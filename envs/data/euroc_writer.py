@@ -73,6 +73,22 @@ def _write_camera_yaml(path: Path, calib: CameraCalibration, exposure_s: float |
     path.write_text(text)
 
 
+TRUE_CAMERA_YAML = "sim_calibration0/cam0_sensor.yaml"
+"""Where a recording keeps the *true* cam0 calibration (our extension, relative to ``mav0``).
+
+``cam0/sensor.yaml`` holds what the estimator is told, which a failure recording writes wrong on purpose;
+this copy lets the ``sim`` front end project with the truth and lets a benchmark score online calibration.
+"""
+
+
+def write_true_calibration(mav0: Path, calib: CameraCalibration) -> Path:
+    """Write the true cam0 calibration to ``mav0/``:data:`TRUE_CAMERA_YAML` (``sensor.yaml``'s format)."""
+    path = Path(mav0) / TRUE_CAMERA_YAML
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _write_camera_yaml(path, calib)
+    return path
+
+
 def _write_imu_yaml(path: Path, noise: ImuNoise, rate_hz: float) -> None:
     text = (
         "%YAML:1.0\n"

@@ -13,16 +13,25 @@ from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
-from viotb.envs.data.euroc import EurocDataset, load_image, read_euroc
+from viotb.envs.data import diagnosis
+from viotb.envs.data.euroc import EurocDataset, read_euroc
+from viotb.envs.data.eval_frames import (
+    apply_imu_gap_policy,
+    camera_frame,
+    covariances_usable,
+    truth_estimate,
+    usable_frames,
+)
 from viotb.envs.data.tum import write_tum
-from viotb.envs.data.validate import IMU_GAP_POLICIES, bridge_imu_gaps, find_imu_gaps
-from viotb.envs.run.replay import replay
+from viotb.envs.data.validate import IMU_GAP_POLICIES
+from viotb.envs.run.replay import MonitoredRun, replay
 from viotb.envs.tools.outdir import atomic_out_dir
 from viotb.vio.factory import make_estimator
-from viotb.vio.lie import quat_wxyz_to_rotmat, rotmat_to_quat_wxyz
+from viotb.vio.health import HealthMonitor, HealthParams
+from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.metrics import evaluate_trajectory
 from viotb.vio.msckf_params import MsckfParams
-from viotb.vio.types import CameraFrame, ImuSeries, StateEstimate, TrajectoryArrays
+from viotb.vio.types import StateEstimate, TrajectoryArrays
 from viotb.vio.window import WindowParams
 
 ProgressFn = Callable[[float, float], None]
@@ -59,6 +68,18 @@ class EvalOptions:
         cameras: 1 (``cam0`` only, the default, so results on stereo folders match earlier runs) or 2
             (``cam0`` and ``cam1``: ``calib_right`` to the estimator, ``image_right`` / ``features_right``
             in each frame).
+        monitor: Run the health monitor beside the estimator (result ``conditions``).
+        calibrate: Estimate the camera-IMU time offset and extrinsics online (``msckf`` only; result
+            ``calibration``). The conditions are those of the first pass, which starts from the file's
+            calibration; each further pass starts from the previous pass's estimate (an EKF does not undo
+            the linearization errors of a large initial offset: 10 ms in the file left 1.2-1.4 ms after one
+            10 s pass, 0.06-0.25 ms after two), and the metrics are those of the last pass.
+        calibration_passes: Passes with ``calibrate`` (1 or more).
+        health: Monitor thresholds (None: the defaults, with the NIS reference of
+            :func:`viotb.envs.data.diagnosis.expected_nis_per_dof`).
+        report: Write the report (PNGs, ``report.json``) into the output folder
+            (:mod:`viotb.envs.tools.eval_report`).
+        rerun: With ``report``, also write a rerun recording ``eval.rrd``.
     """
 
     estimator: str = "msckf"
@@ -71,6 +92,12 @@ class EvalOptions:
     cameras: int = 1
     imu_gap_policy: str = "refuse"
     imu_gap_tolerance_periods: float = 5.0
+    monitor: bool = True
+    calibrate: bool = False
+    calibration_passes: int = 2
+    health: HealthParams | None = None
+    report: bool = False
+    rerun: bool = False
 
     def __post_init__(self) -> None:
         """Reject a negative ``max_frames``, an unknown gap policy and a tolerance <= 1 period."""
@@ -84,120 +111,88 @@ class EvalOptions:
             raise ValueError(f"imu_gap_tolerance_periods must be > 1, got {self.imu_gap_tolerance_periods!r}")
         if self.cameras not in (1, 2):
             raise ValueError(f"cameras must be 1 or 2, got {self.cameras!r}")
+        if not (isinstance(self.calibration_passes, int) and self.calibration_passes >= 1):
+            raise ValueError(f"calibration_passes must be an integer >= 1, got {self.calibration_passes!r}")
 
 
-def _interpolate_pose(gt: TrajectoryArrays, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ground-truth pose at ``t_s``: linear in position, normalized lerp of the quaternion."""
-    i = int(np.clip(np.searchsorted(gt.t_s, t_s), 1, len(gt) - 1))
-    t0, t1 = gt.t_s[i - 1], gt.t_s[i]
-    a = float(np.clip((t_s - t0) / (t1 - t0), 0.0, 1.0))
-    p = (1.0 - a) * gt.p_WB[i - 1] + a * gt.p_WB[i]
-    q0, q1 = gt.quat_wxyz_WB[i - 1], gt.quat_wxyz_WB[i]
-    q1 = q1 if np.dot(q0, q1) >= 0.0 else -q1
-    q = (1.0 - a) * q0 + a * q1
-    return quat_wxyz_to_rotmat(q / np.linalg.norm(q)), p
-
-
-def _truth_estimate(ds: EurocDataset, t_s: float) -> StateEstimate:
-    """Ground truth at ``t_s`` as a :class:`StateEstimate` (for the ``ground-truth`` pass-through)."""
-    R_WB, p_WB = _interpolate_pose(ds.groundtruth, t_s)
-    v = ds.groundtruth.v_WB
-    v_WB = (
-        np.zeros(3) if v is None else v[int(np.clip(np.searchsorted(ds.groundtruth.t_s, t_s), 0, len(v) - 1))]
+def _monitor(ds: EurocDataset, opts: EvalOptions, filter_sigma_px: float) -> HealthMonitor | None:
+    """The health monitor of a run (None when ``opts.monitor`` is off)."""
+    if not opts.monitor:
+        return None
+    if opts.health is not None:
+        return HealthMonitor(opts.health)
+    expected = diagnosis.expected_nis_per_dof(
+        opts.frontend, filter_sigma_px, opts.sim_pixel_sigma_px, ds.landmarks_W is not None
     )
-    return StateEstimate(t_s=t_s, R_WB=R_WB, p_WB=p_WB, v_WB=v_WB)
+    return HealthMonitor(HealthParams(nis_per_dof_expected=expected))
 
 
-def _frame(ds: EurocDataset, i: int, opts: EvalOptions, rng: np.random.Generator) -> CameraFrame:
-    """Camera frame ``i``: the image(s), or simulated features from the dataset's landmarks."""
-    t_cam = float(ds.cam_t_s[i])
-    j = ds.right_index(i) if opts.cameras == 2 else None
-    if opts.frontend != "sim":
-        if opts.cameras == 2:
-            right = None if j is None else load_image(ds, j, camera=1)
-            return CameraFrame(t_s=t_cam, image=load_image(ds, i), image_right=right)
-        return CameraFrame(t_s=t_cam, image=load_image(ds, i))
-    from viotb.envs.sim.landmarks import project_landmarks
+def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | None = None) -> MonitoredRun:
+    """Replay a dataset through an estimator, with the health monitor when ``opts.monitor``.
 
-    if ds.landmarks_W is None or ds.groundtruth is None:
-        raise ValueError(
-            f"{ds.root}: the 'sim' front end needs mav0/sim_landmarks0/data.csv and ground truth; "
-            "use --frontend klt on real data"
-        )
-    R_WB, p_WB = _interpolate_pose(ds.groundtruth, t_cam + ds.calib.time_offset_s)
-    observations = []
-    for calib in [ds.calib] + ([ds.calib_right] if opts.cameras == 2 else []):
-        R_WC = R_WB @ calib.R_BC
-        p_WC = p_WB + R_WB @ calib.p_BC
-        observations.append(
-            project_landmarks(ds.landmarks_W, R_WC, p_WC, calib.camera, rng, opts.sim_pixel_sigma_px)
-        )
-    if opts.cameras == 2:
-        return CameraFrame(t_s=t_cam, features=observations[0], features_right=observations[1])
-    return CameraFrame(t_s=t_cam, features=observations[0])
-
-
-def usable_frames(ds: EurocDataset, opts: EvalOptions) -> tuple[int, int]:
-    """Frames ``[first, stop)`` the replay feeds: within ``max_frames`` and inside the IMU's time span.
-
-    A frame before the first IMU sample (or after the last) cannot be propagated to, so it is skipped;
-    :func:`evaluate_dataset` reports how many.
+    Raises:
+        ValueError: ``opts.calibrate`` with an estimator other than ``msckf``.
     """
-    n = len(ds.cam_t_s) if opts.max_frames is None else min(opts.max_frames, len(ds.cam_t_s))
-    t_imu = ds.cam_t_s[:n] + ds.calib.time_offset_s
-    first = int(np.searchsorted(t_imu, ds.imu.t_s[0], side="left"))
-    stop = int(np.searchsorted(t_imu, ds.imu.t_s[-1], side="right"))
-    return first, max(first, stop)
-
-
-def run_estimator(
-    ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | None = None
-) -> tuple[list[StateEstimate], list[float], list[dict]]:
-    """Replay a dataset through an estimator (:func:`viotb.envs.run.replay.replay`).
-
-    Returns:
-        Estimates at each processed frame (after initialization, before any divergence), per-frame wall time
-        (ms), and per-frame health records (dicts with t_s, tracked_features, updated_features,
-        chi2_rejections, diverged, reason, conditions).
-    """
-    if opts.cameras not in (1, 2):
-        raise ValueError(f"cameras must be 1 or 2, got {opts.cameras}")
     if opts.cameras == 2 and not ds.has_stereo:
         raise ValueError(f"{ds.root}: --cameras 2 needs a cam1 folder (this dataset is mono)")
-    # The stereo keyword goes only to a stereo run, so mono runs do not depend on the stereo estimators.
-    stereo = {"calib_right": ds.calib_right} if opts.cameras == 2 else {}
-    est = make_estimator(
-        opts.estimator,
-        ds.calib,
-        ds.imu_noise,
-        frontend=opts.frontend,
-        params=opts.msckf,
-        window_params=opts.window,
-        **stereo,
-    )
     if opts.estimator == "ground-truth" and ds.groundtruth is None:
         raise ValueError(
             f"{ds.root}: the ground-truth estimator needs state_groundtruth_estimate0/data.csv, "
             "which this dataset does not have"
         )
+    # The stereo keyword goes only to a stereo run, so mono runs do not depend on the stereo estimators.
+    stereo = {"calib_right": ds.calib_right} if opts.cameras == 2 else {}
+    params = opts.msckf
+    if opts.calibrate:
+        if opts.estimator != "msckf":
+            raise ValueError(
+                f"--calibrate needs the msckf estimator (online time-offset and extrinsic calibration); "
+                f"{opts.estimator!r} has none"
+            )
+        params = (params if params is not None else MsckfParams()).with_online_calibration()
+    est = make_estimator(
+        opts.estimator,
+        ds.calib,
+        ds.imu_noise,
+        frontend=opts.frontend,
+        params=params,
+        window_params=opts.window,
+        **stereo,
+    )
+    filter_sigma = (params if params is not None else MsckfParams()).pixel_sigma_px
+    true_calib = diagnosis.read_true_calibration(ds.root) or ds.calib
     rng = np.random.default_rng(opts.seed)
     first, stop = usable_frames(ds, opts)
     n_frames = stop - first
     frame_t_imu = ds.cam_t_s[first:stop] + ds.calib.time_offset_s
     # Start the IMU one second before the first frame (static initialization needs a still window).
     imu_start = float(frame_t_imu[0]) - 1.0 if n_frames else None
-    truth_at = (lambda t: _truth_estimate(ds, t)) if opts.estimator == "ground-truth" else None
-    frames = (_frame(ds, k, opts, rng) for k in range(first, stop))
-    run = replay(
+    truth_at = (lambda t: truth_estimate(ds, t)) if opts.estimator == "ground-truth" else None
+    frames = (camera_frame(ds, k, opts, rng, true_calib) for k in range(first, stop))
+    return replay(
         est,
         ds.imu,
         frames,
         ds.calib.time_offset_s,
+        monitor=_monitor(ds, opts, filter_sigma),
         imu_start_s=imu_start,
         truth_at=truth_at,
         progress=progress,
         n_frames=n_frames,
     )
+
+
+def run_estimator(
+    ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | None = None
+) -> tuple[list[StateEstimate], list[float], list[dict]]:
+    """Replay a dataset through an estimator (:func:`run_monitored`).
+
+    Returns:
+        Estimates at each processed frame (after initialization, before any divergence), per-frame wall time
+        (ms), and per-frame health records (dicts with t_s, tracked_features, updated_features,
+        chi2_rejections, diverged, reason, conditions).
+    """
+    run = run_monitored(ds, opts, progress)
     health = [
         {
             "t_s": float(t),
@@ -228,47 +223,6 @@ def estimates_to_trajectory(estimates: list[StateEstimate]) -> TrajectoryArrays:
     )
 
 
-def apply_imu_gap_policy(ds: EurocDataset, opts: EvalOptions) -> tuple[EurocDataset, list[dict], list[str]]:
-    """Find IMU gaps beyond the tolerance and refuse or bridge them (``opts.imu_gap_policy``).
-
-    Returns:
-        ``(dataset, gaps, notes)``: the dataset (with bridged samples under ``bridge``), one dict per gap
-        (``line0``, ``line1``, ``t0_s``, ``t1_s``, ``samples_inserted``) and notes naming them.
-
-    Raises:
-        ValueError: Under ``refuse``, naming the file, the lines and the times of every gap.
-    """
-    path = ds.root / "imu0" / "data.csv"
-    gaps = find_imu_gaps(path, ds.imu_t_ns, ds.imu_rate_hz, opts.imu_gap_tolerance_periods)
-    if not gaps:
-        return ds, [], []
-    tolerance = f"{opts.imu_gap_tolerance_periods:g} periods at the nominal {ds.imu_rate_hz:g} Hz"
-    if opts.imu_gap_policy == "refuse":
-        named = "; ".join(g.describe(path) for g in gaps[:5]) + ("; ..." if len(gaps) > 5 else "")
-        raise ValueError(
-            f"{len(gaps)} IMU gap(s) longer than {tolerance}: {named}. "
-            "Refused; --imu-gap-policy bridge interpolates across them (and reports it)"
-        )
-    imu = ds.imu
-    values = np.hstack([imu.gyro_B_rad_s, imu.accel_B_m_s2])
-    t_s, values, inserted = bridge_imu_gaps(imu.t_s, values, gaps, ds.imu_rate_hz)
-    bridged = ImuSeries(t_s, values[:, :3].copy(), values[:, 3:].copy(), np.zeros(len(t_s), dtype=bool))
-    report = [
-        {"line0": g.line0, "line1": g.line1, "t0_s": g.t0_s, "t1_s": g.t1_s, "samples_inserted": n}
-        for g, n in zip(gaps, inserted, strict=True)
-    ]
-    notes = [
-        f"IMU gap bridged by linear interpolation ({n} samples): {g.describe(path)}"
-        for g, n in zip(gaps, inserted, strict=True)
-    ]
-    return replace(ds, imu=bridged), report, notes
-
-
-def _covariances_usable(covs: np.ndarray) -> bool:
-    """True when every position covariance is symmetric positive definite (NEES is defined)."""
-    return bool(covs.size) and bool(np.all(np.linalg.eigvalsh(0.5 * (covs + covs.transpose(0, 2, 1))) > 0.0))
-
-
 def evaluate_dataset(
     dataset_dir: Path,
     out_dir: Path,
@@ -281,13 +235,14 @@ def evaluate_dataset(
     Writes ``out_dir/estimate_tum.txt`` and ``out_dir/groundtruth_tum.txt`` (TUM ``t x y z qx qy qz qw``)
     atomically (:func:`viotb.envs.tools.outdir.atomic_out_dir`): ``out_dir`` is checked before any work, a
     non-empty one is refused unless ``overwrite``, and a run that fails or is interrupted leaves nothing.
+    With ``opts.report`` the report (PNGs, ``report.json``) goes there too.
 
     Returns:
         The metrics of :func:`viotb.vio.metrics.evaluate_trajectory` plus ``ms_per_frame_median``,
-        ``ms_per_frame_p99``, ``frames``, ``estimator``, ``frontend``, ``diverged``, ``reason``,
+        ``ms_per_frame_p99``, ``frames``, ``estimator``, ``frontend``, ``cameras``, ``diverged``, ``reason``,
         ``frames_skipped_before_imu``, ``frames_skipped_after_imu``, ``frames_without_estimate``,
-        ``imu_gaps`` and ``notes`` (a list of strings; why a metric is missing or NaN, see
-        :data:`NULL_REASONS`).
+        ``imu_gaps``, ``conditions`` (with the monitor), ``calibration`` (with ``calibrate``) and ``notes``
+        (a list of strings; why a metric is missing or NaN, see :data:`NULL_REASONS`).
 
     Raises:
         ValueError: A bad dataset, an IMU gap under the ``refuse`` policy, or a bad ``out_dir``.
@@ -298,7 +253,15 @@ def evaluate_dataset(
         ds, gaps, notes = apply_imu_gap_policy(ds, opts)
         first, stop = usable_frames(ds, opts)
         n_wanted = len(ds.cam_t_s) if opts.max_frames is None else min(opts.max_frames, len(ds.cam_t_s))
-        estimates, ms, health = run_estimator(ds, opts, progress)
+        first_run = run = run_monitored(ds, opts, progress)
+        ds_run = ds
+        for _ in range(1, opts.calibration_passes if opts.calibrate else 1):
+            ds_run = replace(ds_run, calib=diagnosis.calibrated(ds_run.calib, run))
+            run = run_monitored(ds_run, opts, progress)
+        ms = run.ms_per_frame
+        estimates = [
+            e for e, h in zip(run.estimates, run.health, strict=True) if e is not None and not h.diverged
+        ]
         est_traj = estimates_to_trajectory(estimates)
         write_tum(tmp_dir / "estimate_tum.txt", est_traj)
         result: dict = {
@@ -314,10 +277,10 @@ def evaluate_dataset(
             "imu_gaps": gaps,
             "ms_per_frame_median": float(np.median(ms)) if ms else float("nan"),
             "ms_per_frame_p99": float(np.percentile(ms, 99)) if ms else float("nan"),
-            "diverged": any(h["diverged"] for h in health),
-            "reason": next((h["reason"] for h in health if h["diverged"]), ""),
-            "mean_tracked_features": float(np.mean([h["tracked_features"] for h in health]))
-            if health
+            "diverged": any(h.diverged for h in run.health),
+            "reason": next((h.reason for h in run.health if h.diverged), ""),
+            "mean_tracked_features": float(np.mean([h.tracked_features for h in run.health]))
+            if run.health
             else 0.0,
         }
         t_imu0 = float(ds.imu.t_s[0])
@@ -340,7 +303,7 @@ def evaluate_dataset(
             gt_span = TrajectoryArrays(gt.t_s[mask], gt.p_WB[mask], gt.quat_wxyz_WB[mask])
             write_tum(tmp_dir / "groundtruth_tum.txt", gt_span)
             pos_covs = np.array([e.cov_position_W_m2 for e in estimates])
-            usable = _covariances_usable(pos_covs)
+            usable = covariances_usable(pos_covs)
             result.update(evaluate_trajectory(est_traj, gt, pos_covs=pos_covs if usable else None))
             if not usable:
                 notes.append(
@@ -348,5 +311,18 @@ def evaluate_dataset(
                     "position covariance)"
                 )
         result["frames"] = len(ms)
+        trace = diagnosis.trace_from_run(run, conditions_from=first_run)
+        if first_run.monitor is not None:
+            result["conditions"] = diagnosis.conditions_json(first_run.monitor.report(), trace)
+            result["monitor_ms_per_frame"] = run.monitor_ms / max(len(ms), 1)
+        if opts.calibrate:
+            truth = diagnosis.read_true_calibration(ds.root)
+            passes = max(opts.calibration_passes, 1)
+            result["calibration"] = diagnosis.calibration_json(run, ds_run.calib, ds.calib, truth, passes)
         result["notes"] = notes
+        if opts.report:
+            from viotb.envs.tools.eval_report import write_eval_report
+
+            params = run.monitor.params if run.monitor is not None else None
+            result["report"] = write_eval_report(tmp_dir, result, trace, ds, params, rerun=opts.rerun)
     return result

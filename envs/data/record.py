@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from viotb.envs.data.euroc_stream import EurocStreamWriter
+from viotb.envs.data.euroc_writer import write_true_calibration
 from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
@@ -176,7 +177,9 @@ def record_scenario(
                         progress(next_frame, len(kept))
             # 4. Calibration files and landmarks.
             landmarks_W = scene_landmarks(sim.model, np.random.default_rng(landmark_seq), LANDMARK_COUNT)
-            writer.finish(imu_params.noise, imu_params.rate_hz, landmarks_W)
+            mav0 = writer.finish(imu_params.noise, imu_params.rate_hz, landmarks_W)
+            # The true cam0 calibration beside the (maybe wrong) sensor.yaml, for scoring and sim features.
+            write_true_calibration(mav0, rig.calibs[0])
         finally:
             writer.close()
             rig.close()

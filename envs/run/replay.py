@@ -30,6 +30,7 @@ class MonitoredRun:
         active: The monitor's active conditions after each frame (empty sets without a monitor).
         monitor: The monitor (``report()`` for the conditions), or None when the replay ran without one.
         ms_per_frame: Wall time (ms) of each ``feed_camera`` call.
+        monitor_ms: Total wall time (ms) spent in the monitor's ``observe_imu`` / ``observe_frame`` calls.
     """
 
     estimates: list[StateEstimate | None]
@@ -38,6 +39,7 @@ class MonitoredRun:
     active: list[set[str]]
     monitor: HealthMonitor | None
     ms_per_frame: list[float] = field(default_factory=list)
+    monitor_ms: float = 0.0
 
 
 def replay(
@@ -81,7 +83,9 @@ def replay(
             s = imu.sample(i)
             estimator.feed_imu(s)
             if monitor is not None:
+                t0 = time.perf_counter()
                 monitor.observe_imu(s)
+                out.monitor_ms += (time.perf_counter() - t0) * 1e3
             i += 1
         if truth_at is not None:
             estimator.feed_truth(truth_at(t_imu))
@@ -91,8 +95,10 @@ def replay(
         h = estimator.health()
         est = estimator.estimate()
         if monitor is not None:
+            t0 = time.perf_counter()
             monitor.observe_frame(t_imu, h, est)
             out.active.append(monitor.active())
+            out.monitor_ms += (time.perf_counter() - t0) * 1e3
         else:
             out.active.append(set())
         times.append(t_imu)

@@ -108,11 +108,19 @@ def eval_(
         "What to do with an IMU gap over 5 nominal periods: refuse (an error naming file, lines, times) "
         "or bridge (linear interpolation, reported in imu_gaps and notes).",
     ),
+    calibrate: bool = typer.Option(
+        False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (msckf only)."
+    ),
+    monitor: bool = typer.Option(True, "--monitor/--no-monitor", help="Run the health monitor (default on)."),
+    write_report: bool = typer.Option(
+        True, "--report/--no-report", help="Write PNGs and report.json into --out."
+    ),
+    rerun: bool = typer.Option(False, "--rerun", help="Also write a rerun recording OUT/eval.rrd."),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
-    """Run an estimator on a EuRoC folder, write TUM trajectories and print ATE/RPE/NEES/timing.
+    """Run an estimator on a EuRoC folder: TUM trajectories, ATE/RPE/NEES/timing, the monitor's diagnosis.
 
     Exit status: 0 done; 2 bad input (the message names it); 3 the estimator diverged.
 
@@ -121,6 +129,8 @@ def eval_(
     from viotb.envs.data.evaluate import NULL_REASONS, EvalOptions, evaluate_dataset
 
     check_out(out, overwrite)
+    if calibrate and estimator != "msckf":
+        fail(f"--calibrate needs --estimator msckf: {estimator!r} has no online calibration")
     try:
         opts = EvalOptions(
             estimator=estimator,
@@ -128,12 +138,21 @@ def eval_(
             max_frames=max_frames,
             imu_gap_policy=imu_gap_policy,
             cameras=cameras,
+            monitor=monitor,
+            calibrate=calibrate,
+            report=write_report,
+            rerun=rerun,
         )
         with progress(f"eval {estimator}", not quiet) as report:
             result = evaluate_dataset(dataset, out, opts, report, overwrite=overwrite)
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
     emit(result, as_json, f"{estimator} on {dataset} -> {out}", NULL_REASONS)
+    if not as_json:
+        from rich.console import Console
+        from viotb.envs.tools.eval_report import print_diagnosis
+
+        print_diagnosis(Console(stderr=True), result)
     if result["diverged"]:
         raise typer.Exit(code=EXIT_DIVERGED)
 
