@@ -6,17 +6,14 @@ Split from :mod:`viotb.envs.data.evaluate`, which runs the replay and measures i
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 from viotb.envs.data.euroc import EurocDataset, load_image
+from viotb.envs.data.eval_options import EvalOptions
 from viotb.envs.data.validate import bridge_imu_gaps, find_imu_gaps
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.lie import quat_wxyz_to_rotmat
 from viotb.vio.types import CameraFrame, ImuSeries, StateEstimate, TrajectoryArrays
-
-if TYPE_CHECKING:
-    from viotb.envs.data.evaluate import EvalOptions
 
 
 def interpolate_pose(gt: TrajectoryArrays, t_s: float) -> tuple[np.ndarray, np.ndarray]:

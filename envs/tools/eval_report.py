@@ -196,6 +196,7 @@ def write_eval_report(
     ds: EurocDataset,
     params: HealthParams | None = None,
     rerun: bool = False,
+    final_dir: Path | None = None,
 ) -> dict:
     """Write the report of one eval into ``out_dir`` (module docstring) and return its file paths.
 
@@ -206,6 +207,8 @@ def write_eval_report(
         ds: The dataset (ground truth, images for the rerun recording).
         params: The monitor's thresholds (the defaults when None).
         rerun: Also write ``eval.rrd``.
+        final_dir: Where ``out_dir`` will be renamed to (an atomic write); the paths name it (None:
+            ``out_dir``).
 
     Returns:
         ``{"error_plot", "health_plot", "json", "rerun"}`` (paths as strings; ``error_plot`` and ``rerun``
@@ -225,11 +228,12 @@ def write_eval_report(
     rrd = out / "eval.rrd"
     if rerun:
         _write_rerun(rrd, trace, ds, prm, result.get("conditions", []))
+    final = Path(final_dir) if final_dir is not None else out
     paths = {
-        "error_plot": str(error_png) if has_err else None,
-        "health_plot": str(health_png) if len(trace.frame_t_s) else None,
-        "json": str(out / "report.json"),
-        "rerun": str(rrd) if rerun else None,
+        "error_plot": str(final / error_png.name) if has_err else None,
+        "health_plot": str(final / health_png.name) if len(trace.frame_t_s) else None,
+        "json": str(final / "report.json"),
+        "rerun": str(final / rrd.name) if rerun else None,
     }
     text = json.dumps(strict_json({**result, "report": paths}), indent=2, allow_nan=False)
     tmp = out / "report.json.tmp"
