@@ -26,6 +26,7 @@ from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
 from viotb.envs.sim.imu_model import ImuModel
+from viotb.envs.sim.imu_model import imu_preset as imu_preset_params
 from viotb.models.constants import ONBOARD_CAMERA, VEHICLE_BODIES
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
@@ -79,7 +80,7 @@ def record_scenario(
     duration_s = float(scenario.default_seconds if seconds is None else seconds)
     trajectory = scenario.make_trajectory(duration_s)
     cam_params = scenario.camera
-    imu_params = imu_preset(scenario.imu_preset)
+    imu_params = imu_preset_params(scenario.imu_preset)
 
     # 1. Independent random streams.
     imu_seq, drop_seq, pixel_seq, landmark_seq = np.random.SeedSequence(seed).spawn(4)
