@@ -110,12 +110,20 @@ def eval_(
     out: Path = typer.Option(Path("viotb_out/eval"), "--out", help="Output folder for the TUM files."),
     frontend: str = typer.Option("klt", "--frontend", help="klt (images) | sim (recorded landmarks, fast)."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    loop_closure: bool = typer.Option(False, "--loop-closure", help="Loop closure (loop_closures.csv)."),
+    map_in: Path | None = typer.Option(None, "--map-in", help="Start in this saved map's frame."),
+    map_out: Path | None = typer.Option(None, "--map-out", help="Save the loop-closure map here (.npz)."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Run an estimator on a EuRoC folder, write TUM trajectories and print ATE/RPE/NEES/timing."""
     from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
+    from viotb.envs.run.loop_glue import loop_options
 
-    opts = EvalOptions(estimator=estimator, frontend=frontend, max_frames=max_frames)
+    try:
+        loop = loop_options(loop_closure, map_in, map_out)
+    except ValueError as exc:
+        _fail(str(exc))
+    opts = EvalOptions(estimator=estimator, frontend=frontend, max_frames=max_frames, loop=loop)
     try:
         with _progress(f"eval {estimator}", not as_json) as progress:
             result = evaluate_dataset(dataset, out, opts, progress)
@@ -136,6 +144,9 @@ def fly(
         False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (MSCKF)."
     ),
     severity: float | None = typer.Option(None, "--severity", help="Severity of a fly-fail-* scenario."),
+    loop_closure: bool = typer.Option(
+        False, "--loop-closure", help="Loop closure; the controller gets the corrected pose (needs klt)."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
     """Fly a closed-loop scenario with the estimator in the loop."""
@@ -154,6 +165,7 @@ def fly(
                 progress,
                 online_calibration=calibrate or None,
                 severity=severity,
+                loop_closure=loop_closure,
             )
     except ValueError as exc:
         _fail(str(exc))
