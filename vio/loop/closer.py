@@ -74,6 +74,7 @@ class LoopCloser:
         self._last_t_s: float | None = None
         self._lost = False
         self._first_own_sequence = 0  # sequences below are a loaded map's
+        self._loaded_map = False
         self.heading_axis_B: np.ndarray | None = None  # set at the first keyframe or by load_map
 
     def _yaw(self, R_WB: np.ndarray) -> float:
@@ -254,8 +255,13 @@ class LoopCloser:
                 yaw, p = self.graph.node(k.index)
                 k.R_WB_map = rotz(yaw - self._yaw(k.R_WB_odom)) @ k.R_WB_odom
                 k.p_WB_map = p
+        # Localizing into a loaded map snaps (the odometry frame before was arbitrary: nothing to blend from);
+        # every other correction is blended in.
+        snap = relocalization and self._loaded_map and kf.sequence == self._first_own_sequence
         self.blender.set_target(
-            kf.t_s, drift_4dof(kf.R_WB_map, kf.p_WB_map, kf.R_WB_odom, kf.p_WB_odom, self.heading_axis_B)
+            kf.t_s,
+            drift_4dof(kf.R_WB_map, kf.p_WB_map, kf.R_WB_odom, kf.p_WB_odom, self.heading_axis_B),
+            snap=snap,
         )
         for i, c in enumerate(accepted):
             T = c.verified.T_match_query
@@ -341,3 +347,4 @@ class LoopCloser:
         self._localized = {kf.sequence for kf in keyframes}
         self.sequence = max(self._localized, default=-1) + 1
         self._first_own_sequence = self.sequence
+        self._loaded_map = True
