@@ -8,11 +8,12 @@ it, both on the query's map pose that the closure implies, ``T_map_q = T_map_mat
    (``T_map_odom @ T_odom_q``) can be off only by the drift accumulated since the last accepted closure of
    the sequence (or its start), so the two must agree within ``base + rate * path`` in position and yaw,
    where ``path`` is the odometry's travelled distance since then.
-2. Confirmation: a candidate is held until a later keyframe of the same sequence, at most ``window_s`` later,
-   is verified too (against any keyframe) and both imply the same drift correction: the later query's map pose
-   predicted with the earlier candidate's correction must agree with its own within ``confirm_*``. A place
-   that only looks alike rarely gives two consistent poses in a row; relocalization (no prediction to check
-   against) relies on this alone.
+2. Confirmation: a candidate is held until a later keyframe of the same sequence, at most ``window_s``
+   later, is verified too, against another keyframe than the held one's match (a keyframe with biased
+   landmarks biases every PnP against it alike), and both imply the same drift correction: the later query's
+   map pose predicted with the earlier candidate's correction must agree with its own within ``confirm_*``.
+   A place that only looks alike rarely gives two consistent poses in a row; relocalization (no prediction
+   to check against) relies on this alone.
 """
 
 from __future__ import annotations
@@ -96,6 +97,9 @@ class ConsistencyGate:
         prev = self.pending
         self.pending = cand
         if prev is None or prev.query.sequence != cand.query.sequence:
+            return []
+        if cp.confirm_distinct_match and prev.match.index == cand.match.index:
+            self.pending = prev if cand.query.t_s - prev.query.t_s <= cp.confirm_window_s else cand
             return []
         if cand.query.t_s - prev.query.t_s > cp.confirm_window_s:
             self.unconfirmed += 1

@@ -118,6 +118,8 @@ class ConsistencyParams:
         confirm_window_s: Largest time between a candidate and its confirmation (s).
         confirm_translation_m: Largest position disagreement between the two candidates' implied poses (m).
         confirm_yaw_deg: Largest yaw disagreement between them (deg).
+        confirm_distinct_match: The confirming loop must match another keyframe than the held one (a keyframe
+            with biased landmarks biases every PnP against it alike, so it cannot confirm itself).
     """
 
     drift_base_m: float = 0.10
@@ -128,6 +130,7 @@ class ConsistencyParams:
     confirm_window_s: float = 3.0
     confirm_translation_m: float = 0.03
     confirm_yaw_deg: float = 0.5
+    confirm_distinct_match: bool = True
 
 
 @dataclass(frozen=True)
