@@ -9,8 +9,8 @@ it, both on the query's map pose that the closure implies, ``T_map_q = T_map_mat
    the sequence (or its start), so the two must agree within ``base + rate * path`` in position and yaw,
    where ``path`` is the odometry's travelled distance since then.
 2. Confirmation: a candidate is held until a later keyframe of the same sequence, at most ``window_s``
-   later, is verified too, against another keyframe than the held one's match (a keyframe with biased
-   landmarks biases every PnP against it alike), and both imply the same drift correction: the later query's
+   later, is verified too (optionally against another keyframe than the held one's match:
+   ``confirm_distinct_match``), and both imply the same drift correction: the later query's
    map pose predicted with the earlier candidate's correction must agree with its own within ``confirm_*``.
    A place that only looks alike rarely gives two consistent poses in a row; relocalization (no prediction
    to check against) relies on this alone.
