@@ -70,3 +70,17 @@ def test_returns_to_the_start_are_found():
     p = np.stack([np.cos(2 * np.pi * t / 10.0) - 1.0, np.sin(2 * np.pi * t / 10.0), 0 * t], axis=1)
     traj = TrajectoryArrays(t, p, np.tile([1.0, 0, 0, 0], (len(t), 1)))
     np.testing.assert_allclose(t[returns_to_start(traj)], [10.0, 20.0, 30.0])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["long-loop", "fail-long-loop"])
+def test_long_loop_is_closed(tmp_path, scenario):
+    # Measured (seed 0, KLT): long-loop 60 s ATE 7.1 -> 3.0 cm, returns 3.2/18.6/15.9 -> 0.8/2.0/2.8 cm;
+    # fail-long-loop 80 s 17.0 -> 5.1 cm, 15.3/37.3/50.2 -> 1.5/1.7/2.7 cm; closures within 4.6 cm / 0.81 deg.
+    seconds = 60.0 if scenario == "long-loop" else 80.0
+    record_scenario(scenario, tmp_path / "data", seed=0, seconds=seconds)
+    result = evaluate_dataset(tmp_path / "data", tmp_path / "eval", EvalOptions(loop=LoopOptions()))
+    assert result["loop_closures"] >= 20
+    assert result["ate_posyaw_m"] < 0.5 * result["ate_posyaw_odometry_m"]
+    returns = result["return_to_start_err_m"]
+    assert max(returns[:-1]) < 0.025  # the last return is the recording's last frame: not yet confirmed
