@@ -269,6 +269,7 @@ class FlightLoopClosure:
         if opts.map_in is not None:
             self.closer.load_map(opts.map_in)
         self.odometry: list[StateEstimate] = []
+        self.online: list[StateEstimate] = []
         self.truth: list[StateEstimate] = []
         self._had_tracks = False
 
@@ -291,6 +292,7 @@ class FlightLoopClosure:
         self._had_tracks = tracked > 0
         self.closer.add_frame(t_s, image_u8, est.R_WB, est.p_WB, self.calib)
         self.odometry.append(replace(est, t_s=t_s))
+        self.online.append(self.correct(t_s, self.odometry[-1]))
         if truth is not None:
             self.truth.append(replace(truth, t_s=t_s))
 
@@ -305,8 +307,7 @@ class FlightLoopClosure:
         """Save the map when asked; the JSON keys of the closer (closures, cost)."""
         if self.opts.map_out is not None:
             self.closer.save_map(self.opts.map_out)
-        online = [self.correct(e.t_s, e) for e in self.odometry]
-        run = LoopRun(online, online, self.closer)
+        run = LoopRun(self.online, self.online, self.closer)
         gt = estimates_to_trajectory(self.truth) if len(self.truth) == len(self.odometry) else None
         out = loop_metrics(run, estimates_to_trajectory(self.odometry), gt)
         out["loop_closure_rows"] = [c.as_row() for c in self.closer.closures]
