@@ -173,7 +173,8 @@ def fly(
             log.frame_t_s.append(loop.t_s)
             log.frame_features.append(h.tracked_features)
             log.frame_conditions.append(h.conditions)
-            if lc is not None and loop.last_frame is not None:
+            if lc is not None and loop.last_frame is not None and seq.phase == "mission":
+                # From the mission on: keyframes of the climb carry the filter's unconverged scale.
                 frame_image = loop.last_frame.image
                 lc.on_frame(loop.t_s, frame_image, loop.estimate(), h.tracked_features, loop.truth())
         if on_tick is not None:
