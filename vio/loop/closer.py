@@ -1,18 +1,22 @@
 """The loop-closure facade: one call per camera frame, decoupled from the estimator.
 
 Per frame: ``add_frame(t, image, R_WB, p_WB, calib)`` with the estimator's pose in its own odometry frame.
-Keyframes get ORB features and triangulated landmarks; each new keyframe queries the bag-of-words database
-(keyframes of its own sequence only when ``min_time_gap_s`` older; other localized sequences and a loaded map
-all), verifies the best candidates with PnP RANSAC, and on success adds a loop edge and solves the 4-DOF pose
-graph. The result is published as ``T_W_corrected_from_W_odom`` (blended in over ``blend_duration_s``), so the
-estimator's state is never touched: ``corrected_pose(t, R_WB, p_WB)`` maps any odometry pose to the map.
+Keyframes (every 0.3 m or 15 deg) get ORB features and landmarks triangulated against the previous keyframes;
+each new keyframe queries the bag-of-words database (keyframes of its own sequence only when
+``min_time_gap_s`` older; other localized sequences and a loaded map all), verifies the best candidates with
+PnP RANSAC, checks the first verified one against the odometry's drift bound and holds it until the next
+keyframe confirms it (:mod:`viotb.vio.loop.consistency`); then both loop edges go into the 4-DOF pose graph
+and it is solved. The result is published as ``T_W_corrected_from_W_odom`` (blended in over
+``blend_duration_s``), so the estimator's state is never touched: ``corrected_pose(t, R_WB, p_WB)`` maps any
+odometry pose to the map; ``smoothed_corrections`` gives the whole run's final (non-causal) corrections.
 
 Sequences and relocalization (VINS-Mono's ``sequence``): a tracking loss (``notify_tracking_lost()``, or a
 frame gap over ``tracking_loss_gap_s``) starts a new odometry sequence that is not localized: its keyframes
-stay out of the graph and the correction resets to identity until a keyframe is verified against a localized
-one; then ``T_map_odom`` of the sequence is the 4-DOF transform that puts the query where PnP says, the
-sequence joins the graph and the graph is solved. A run started with ``load_map`` is such a sequence: it
-localizes into the map's frame at its first recognized place, with the map's keyframes held fixed.
+stay out of the graph and the correction in force is kept (an estimator that coasts through a blackout keeps
+its frame) until two keyframes are verified against localized ones and agree; then ``T_map_odom`` of the
+sequence is the 4-DOF transform that puts the query where PnP says, the sequence joins the graph and the
+graph is solved. A run started with ``load_map`` is such a sequence: it localizes into the map's frame at its
+first recognized place (snapping, since its odometry frame was arbitrary), with the map's keyframes fixed.
 """
 
 from __future__ import annotations
