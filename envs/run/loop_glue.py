@@ -173,8 +173,8 @@ def loop_metrics(run: LoopRun, odometry: TrajectoryArrays, gt: TrajectoryArrays 
     kf_ms = [ft.total_ms for ft in closer.timings if ft.keyframe]
     solve = [ft.optimize_ms for ft in closer.timings if ft.optimize_ms > 0]
     out: dict = {
-        "loop_closures": len(closer.closures),
-        "relocalizations": sum(c.relocalization for c in closer.closures),
+        "loop_closures": len(closer.run_closures),
+        "relocalizations": sum(c.relocalization for c in closer.run_closures),
         "loop_keyframes": len(closer.db),
         "loop_ms_per_frame_median": float(np.median(ms)),
         "loop_ms_per_frame_mean": float(np.mean(ms)),
@@ -208,7 +208,7 @@ def apply_loop_closure(
 
     run = run_loop_closure(ds, estimates, health, opts)
     out_dir = Path(out_dir)
-    write_loop_closures_csv(out_dir / "loop_closures.csv", run.closer.closures)
+    write_loop_closures_csv(out_dir / "loop_closures.csv", run.closer.run_closures)
     odometry = estimates_to_trajectory(estimates)
     if estimates:
         write_tum(out_dir / "estimate_odometry_tum.txt", odometry)
@@ -310,5 +310,5 @@ class FlightLoopClosure:
         run = LoopRun(self.online, self.online, self.closer)
         gt = estimates_to_trajectory(self.truth) if len(self.truth) == len(self.odometry) else None
         out = loop_metrics(run, estimates_to_trajectory(self.odometry), gt)
-        out["loop_closure_rows"] = [c.as_row() for c in self.closer.closures]
+        out["loop_closure_rows"] = [c.as_row() for c in self.closer.run_closures]
         return out

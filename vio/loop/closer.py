@@ -79,10 +79,16 @@ class LoopCloser:
         self._lost = False
         self._first_own_sequence = 0  # sequences below are a loaded map's
         self._loaded_map = False
+        self._n_loaded_closures = 0
         self.heading_axis_B: np.ndarray | None = None  # set at the first keyframe or by load_map
 
     def _yaw(self, R_WB: np.ndarray) -> float:
         return heading_rad(R_WB, self.heading_axis_B)
+
+    @property
+    def run_closures(self) -> list[LoopClosure]:
+        """The closures accepted in this run (``closures`` also holds a loaded map's)."""
+        return self.closures[self._n_loaded_closures :]
 
     @property
     def localized(self) -> bool:
@@ -348,6 +354,7 @@ class LoopCloser:
             self.graph.add_node(kf.index, self._yaw(kf.R_WB_map), kf.p_WB_map, fixed=True)
         self._map_edges = edges
         self.closures = closures
+        self._n_loaded_closures = len(closures)
         self._localized = {kf.sequence for kf in keyframes}
         self.sequence = max(self._localized, default=-1) + 1
         self._first_own_sequence = self.sequence
