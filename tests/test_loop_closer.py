@@ -10,6 +10,7 @@ path, a poor VIO), so consecutive keyframes are nearly right and revisits are of
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from viotb.envs.data.euroc import load_image, read_euroc
 from viotb.vio.lie import log_so3, rotz
 from viotb.vio.loop import LoopCloser, LoopClosureParams, PlaceRecognitionParams, RigidTransform
+from viotb.vio.loop.bow import train_vocabulary
 from viotb.vio.loop.map_io import MAP_KEYS, read_map_arrays
 
 MICRO = Path("/work/shared/data/euroc_v1_01_micro")
@@ -180,10 +182,6 @@ def test_relocalization_after_a_blackout_while_moving(scene):
 
 
 def test_the_shipped_vocabulary_is_used_and_training_one_is_fast():
-    import time
-
-    from viotb.vio.loop.bow import train_vocabulary
-
     assert LoopCloser().bow is not None and LoopCloser().bow.vocabulary.shape == (512, 32)
     no_ship = LoopClosureParams(recognition=PlaceRecognitionParams(shipped_vocabulary=False))
     assert LoopCloser(no_ship).bow is None  # trains from its first keyframes instead
