@@ -14,10 +14,18 @@ from scipy.spatial.transform import Rotation
 from viotb.envs.data.euroc import read_euroc
 from viotb.envs.data.evaluate import EvalOptions, _interpolate_pose, evaluate_dataset
 from viotb.envs.data.record import record_scenario
-from viotb.envs.run.loop_glue import CSV_COLUMNS, LoopOptions, loop_options, require_images, returns_to_start
+from viotb.envs.run.fly import fly
+from viotb.envs.run.loop_glue import (
+    CSV_COLUMNS,
+    FlightLoopClosure,
+    LoopOptions,
+    loop_options,
+    require_images,
+    returns_to_start,
+)
 from viotb.vio.lie import log_so3
 from viotb.vio.loop import RigidTransform
-from viotb.vio.types import TrajectoryArrays
+from viotb.vio.types import StateEstimate, TrajectoryArrays
 
 
 @pytest.fixture(scope="module")
@@ -84,3 +92,19 @@ def test_long_loop_is_closed(tmp_path, scenario):
     assert result["ate_posyaw_m"] < 0.5 * result["ate_posyaw_odometry_m"]
     returns = result["return_to_start_err_m"]
     assert max(returns[:-1]) < 0.025  # the last return is the recording's last frame: not yet confirmed
+
+
+def test_flight_glue_blends_the_correction_and_leaves_the_filter_alone():
+    lc = FlightLoopClosure(LoopOptions(), calib=None, frontend="klt")
+    lc.closer.blender.set_target(0.0, RigidTransform.from_yaw(0.1, np.array([1.0, 0.0, 0.0])))
+    est = StateEstimate(t_s=0.5, R_WB=np.eye(3), p_WB=np.zeros(3), v_WB=np.array([1.0, 0.0, 0.0]))
+    half = lc.correct(0.5, est)
+    np.testing.assert_allclose(half.p_WB, [0.5, 0.0, 0.0], atol=1e-12)  # halfway through the 1 s blend
+    np.testing.assert_allclose(half.v_WB, [np.cos(0.05), np.sin(0.05), 0.0], atol=1e-12)
+    np.testing.assert_allclose(est.p_WB, 0.0)  # the filter's estimate is not touched
+    np.testing.assert_allclose(lc.correct(2.0, est).p_WB, [1.0, 0.0, 0.0], atol=1e-12)
+
+
+def test_fly_refuses_loop_closure_without_images():
+    with pytest.raises(ValueError, match="needs camera images"):
+        fly("fly-hover", "msckf", seconds=1.0, frontend="sim", loop_closure=True)
