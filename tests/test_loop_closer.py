@@ -1,13 +1,16 @@
 """End-to-end loop closure, relocalization and maps on images of real texture seen from a known trajectory.
 
-Scene: the undistorted EuRoC V1_01 frame 10 as a texture on the plane 3 m in front of a reference camera; the
-image of any camera pose is the plane-induced homography of that texture, exactly. The "estimator" is the true
-trajectory with an injected 4-DOF drift that grows with time (yaw 0.5 deg/s, 4.1 cm/s), so consecutive
-keyframes are nearly right and revisits are off by the accumulated drift, as with a real VIO.
+Scene: two planes, so PnP is not degenerate (on one plane lateral translation and rotation trade off): the
+undistorted EuRoC V1_01 frame 10 as a texture on the plane 3 m in front of a reference camera, and frame 60
+on a nearer plane (1.8 m) covering the left third of the reference view; the image of any camera pose is the
+two plane-induced homographies composited (the near plane occludes), exactly. The "estimator" is the true
+trajectory with an injected 4-DOF drift that grows with time (yaw 0.1 deg/s, 1.8 cm/s: about 4 % of the
+path, a poor VIO), so consecutive keyframes are nearly right and revisits are off by the accumulated drift.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,11 +21,12 @@ from scipy.spatial.transform import Rotation
 from viotb.envs.data.euroc import load_image, read_euroc
 from viotb.vio.lie import log_so3, rotz
 from viotb.vio.loop import LoopCloser, LoopClosureParams, PlaceRecognitionParams, RigidTransform
+from viotb.vio.loop.bow import train_vocabulary
 from viotb.vio.loop.map_io import MAP_KEYS, read_map_arrays
 
 MICRO = Path("/work/shared/data/euroc_v1_01_micro")
 pytestmark = pytest.mark.skipif(not MICRO.is_dir(), reason="EuRoC micro set not present")
-PERIOD_S, RATE_HZ, DEPTH_M = 8.0, 10.0, 3.0
+PERIOD_S, RATE_HZ, DEPTH_M, NEAR_DEPTH_M = 8.0, 10.0, 3.0, 1.8
 R_WC0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera looks along world +x
 T_WC0 = RigidTransform(R_WC0, np.array([0.0, 0.0, 1.0]))
 
@@ -31,9 +35,10 @@ T_WC0 = RigidTransform(R_WC0, np.array([0.0, 0.0, 1.0]))
 def scene():
     ds = read_euroc(MICRO)
     K, dist = ds.calib.camera.K, np.array(ds.calib.camera.distortion)
-    texture = cv2.undistort(load_image(ds, 10), K, dist)
+    far = cv2.undistort(load_image(ds, 10), K, dist)
+    near = cv2.undistort(load_image(ds, 60), K, dist)
     calib = replace(ds.calib, camera=replace(ds.calib.camera, distortion=(0.0, 0.0, 0.0, 0.0)))
-    return texture, calib
+    return (far, near), calib
 
 
 def true_body(t_s: float, calib) -> RigidTransform:
@@ -47,22 +52,35 @@ def render(texture, calib, T_WB: RigidTransform) -> np.ndarray:
     T_Cq_C0 = (T_WB @ RigidTransform(calib.R_BC, calib.p_BC)).inverse() @ T_WC0
     n = np.array([0.0, 0.0, 1.0])
     K = calib.camera.K
-    H = K @ (T_Cq_C0.R + np.outer(T_Cq_C0.p, n) / DEPTH_M) @ np.linalg.inv(K)
-    h, w = texture.shape
-    return cv2.warpPerspective(texture, H, (w, h))
+    far, near = texture
+    h, w = far.shape
+
+    def warp(img: np.ndarray, depth_m: float) -> np.ndarray:
+        H = K @ (T_Cq_C0.R + np.outer(T_Cq_C0.p, n) / depth_m) @ np.linalg.inv(K)
+        return cv2.warpPerspective(img, H, (w, h))
+
+    mask = np.zeros_like(near)
+    mask[:, : w // 3] = 255
+    out = warp(far, DEPTH_M)
+    covered = warp(mask, NEAR_DEPTH_M) > 127
+    out[covered] = warp(near, NEAR_DEPTH_M)[covered]
+    return out
 
 
-def drift(t_s: float, offset: RigidTransform) -> RigidTransform:
-    return offset @ RigidTransform.from_yaw(np.deg2rad(0.5) * t_s, np.array([0.03, -0.02, 0.02]) * t_s)
+def drift(t_s: float, offset: RigidTransform, scale: float = 1.0) -> RigidTransform:
+    rate = scale * t_s
+    return offset @ RigidTransform.from_yaw(np.deg2rad(0.1) * rate, np.array([0.012, -0.01, 0.01]) * rate)
 
 
-def fly(closer: LoopCloser, scene, t0_s: float, t1_s: float, offset: RigidTransform) -> list[tuple]:
+def fly(
+    closer: LoopCloser, scene, t0_s: float, t1_s: float, offset: RigidTransform, scale: float = 1.0
+) -> list[tuple]:
     """Feed frames in [t0, t1); returns (t, truth, odometry, closure) per frame."""
     texture, calib = scene
     out = []
     for t_s in np.arange(t0_s, t1_s, 1.0 / RATE_HZ):
         truth = true_body(t_s, calib)
-        odom = drift(t_s, offset) @ truth
+        odom = drift(t_s, offset, scale) @ truth
         closure = closer.add_frame(t_s, render(texture, calib, truth), odom.R, odom.p, calib)
         out.append((t_s, truth, odom, closure))
     return out
@@ -85,18 +103,16 @@ def first_run(scene):
 def test_loops_are_found_and_their_relative_poses_are_right(first_run):
     closer, frames = first_run
     truth_at = {round(t, 6): tr for t, tr, _, _ in frames}
-    assert len(closer.closures) >= 10  # measured: 20 in 16 s
+    assert len(closer.closures) >= 4  # measured: 6 in 16 s (keyframes every 0.3 m / 15 deg, confirmed pairs)
     errors = []
     for c in closer.closures:
         T_mq_true = truth_at[round(c.t_match_s, 6)].inverse() @ truth_at[round(c.t_query_s, 6)]
         T_mq = RigidTransform(Rotation.from_quat(c.quat_xyzw).as_matrix(), c.p_xyz)
         errors.append(_err(T_mq, T_mq_true))
     errors = np.array(errors)
-    # Measured: 18 of 19 within 12 cm / 2.3 deg (a single plane: lateral translation and rotation trade off);
-    # one accepted closure is 0.48 m off (KNOWN ISSUE: verification lets it through; Huber limits it).
-    good = (errors[:, 0] < 0.15) & (errors[:, 1] < 3.0)
-    assert good.mean() >= 0.85
-    assert np.median(errors[:, 0]) < 0.06
+    # Measured: all within 1.8 cm / 0.46 deg (two planes; the drift bound and the confirmation by the next
+    # keyframe keep out the closures a single plane let through, one of them 0.48 m off).
+    assert np.all(errors[:, 0] < 0.03) and np.all(errors[:, 1] < 1.0), errors
 
 
 def test_drift_is_corrected_after_the_loop(first_run):
@@ -105,14 +121,14 @@ def test_drift_is_corrected_after_the_loop(first_run):
     R, p = closer.corrected_pose(t_s, odom.R, odom.p)
     err_odom = _err(odom, truth)
     err_corr = _err(RigidTransform(R, p), truth)
-    # Measured: odometry 0.67 m / 7.9 deg off at 16 s; corrected 0.16 m / 2.2 deg (the keyframe map poses at
-    # the closures are 3-12 cm / 0.3-1.8 deg off).
-    assert err_odom[0] > 0.5
-    assert err_corr[0] < 0.2 and err_corr[1] < 3.0, (err_odom, err_corr)
+    # Measured: odometry 0.30 m / 1.6 deg off at 16 s; corrected 0.13 m / 0.9 deg (3.4 s of drift since the
+    # last closure).
+    assert err_odom[0] > 0.25
+    assert err_corr[0] < 0.5 * err_odom[0] and err_corr[1] < 1.2, (err_odom, err_corr)
     keyframe_ms = [ft.total_ms for ft in closer.timings if ft.keyframe]
     other_ms = [ft.total_ms for ft in closer.timings if not ft.keyframe]
     assert np.median(other_ms) < 1.0
-    assert np.median(keyframe_ms) < 150.0
+    assert np.median(keyframe_ms) < 150.0  # measured ~25-50 ms on 2 shared cores (752x480 here)
 
 
 def test_map_round_trip_is_exact(first_run, tmp_path):
@@ -142,3 +158,34 @@ def test_new_run_with_a_loaded_map_localizes_into_the_map_frame(first_run, scene
     R, p = second.corrected_pose(t_s + 2.0, odom.R, odom.p)  # after the blend
     err_m, err_deg = _err(RigidTransform(R, p), truth)
     assert err_m < 0.15 and err_deg < 3.0  # measured 0.15 m / 2.1 deg
+
+
+def test_relocalization_after_a_blackout_while_moving(scene):
+    # No drift before the blackout, so the map frame is the truth frame; during 1.5 s of blackout the
+    # estimator (coasting on the IMU) jumps by 0.4 m and 6 deg, then tracks again in that shifted frame.
+    closer = LoopCloser(PARAMS)
+    fly(closer, scene, 0.0, 9.0, RigidTransform.identity(), scale=0.0)
+    jump = RigidTransform.from_yaw(np.deg2rad(6.0), np.array([0.3, -0.25, 0.1]))
+    closer.notify_tracking_lost()
+    frames = fly(closer, scene, 10.5, 14.0, jump, scale=0.0)
+    relocs = [f for f in frames if f[3] is not None and f[3].relocalization]
+    assert relocs and closer.localized
+    t_reloc = relocs[0][0]
+    errors = []
+    for t_s, truth, odom, _ in frames:
+        if t_s >= t_reloc + PARAMS.blend_duration_s:
+            errors.append(_err(RigidTransform(*closer.corrected_pose(t_s, odom.R, odom.p)), truth))
+    errors = np.array(errors)
+    assert len(errors) >= 5
+    # Measured: relocalized at 11.6 s; afterwards within 0.8 cm / 0.2 deg (odometry 0.41-0.45 m / 6 deg off).
+    assert errors[:, 0].max() < 0.03 and errors[:, 1].max() < 1.0, errors
+
+
+def test_the_shipped_vocabulary_is_used_and_training_one_is_fast():
+    assert LoopCloser().bow is not None and LoopCloser().bow.vocabulary.shape == (512, 32)
+    no_ship = LoopClosureParams(recognition=PlaceRecognitionParams(shipped_vocabulary=False))
+    assert LoopCloser(no_ship).bow is None  # trains from its first keyframes instead
+    descriptors = np.random.default_rng(0).integers(0, 256, (2500, 32), dtype=np.uint8)
+    t0 = time.process_time()
+    assert train_vocabulary(descriptors, 512, 8, 0).shape == (512, 32)
+    assert time.process_time() - t0 < 1.0  # measured 0.14 s (was 2.5 s at the 5th keyframe)

@@ -23,6 +23,7 @@ from viotb.vio.loop.verification import verify_candidate
 
 MICRO = Path("/work/shared/data/euroc_v1_01_micro")
 pytestmark = pytest.mark.skipif(not MICRO.is_dir(), reason="EuRoC micro set not present")
+KP = KeyframeParams(orb_n_features=1000)  # EuRoC's 752x480 (the default 500 is sized for 320x240 renders)
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +51,7 @@ def _angle_deg(R: np.ndarray) -> float:
 
 
 def test_revisit_of_two_real_frames_recovers_the_ground_truth_relative_pose(euroc):
-    calib, db = euroc.calib, KeyframeDatabase()
+    calib, db = euroc.calib, KeyframeDatabase(KP)
     i, j = 10, 16
     T_i, T_j = _gt_pose(euroc, euroc.cam_t_s[i]), _gt_pose(euroc, euroc.cam_t_s[j])
     rng = np.random.default_rng(0)
@@ -59,7 +60,7 @@ def test_revisit_of_two_real_frames_recovers_the_ground_truth_relative_pose(euro
         db, load_image(euroc, i), calib, lambda xy: rng.uniform(2, 6, len(xy)), T_i.R, T_i.p
     )
     uv, desc, _ = db.extract(load_image(euroc, j), T_j.R, T_j.p)
-    verdict = verify_candidate(uv, desc, T_j.R, kf, calib, KeyframeParams(), VerificationParams())
+    verdict = verify_candidate(uv, desc, T_j.R, kf, calib, KP, VerificationParams())
     assert verdict.reason == "ok"
     truth = T_i.inverse() @ T_j
     pose = verdict.pose
@@ -88,7 +89,7 @@ def _moved_pair(euroc, T_C0_Cq: RigidTransform, depth_of_xy, depth_m: float = 3.
     calib = _pinhole(euroc.calib)
     K, dist = euroc.calib.camera.K, np.array(euroc.calib.camera.distortion)
     undist = [cv2.undistort(load_image(euroc, k), K, dist) for k in (10, 16)]
-    db = KeyframeDatabase()
+    db = KeyframeDatabase(KP)
     T_BC = RigidTransform(calib.R_BC, calib.p_BC)
     T_W_Bm = RigidTransform(rotz(0.3), np.array([1.0, 2.0, 1.0]))  # a gravity-aligned body pose
     T_mq = T_BC @ T_C0_Cq @ T_BC.inverse()
@@ -96,7 +97,7 @@ def _moved_pair(euroc, T_C0_Cq: RigidTransform, depth_of_xy, depth_m: float = 3.
     kf = _keyframe_with_depths(db, undist[0], calib, depth_of_xy, T_W_Bm.R, T_W_Bm.p)
     query = _plane_view(undist[1], K, T_C0_Cq.inverse(), depth_m)
     uv, desc, _ = db.extract(query, T_W_Bq.R, T_W_Bq.p)
-    verdict = verify_candidate(uv, desc, T_W_Bq.R, kf, calib, KeyframeParams(), VerificationParams())
+    verdict = verify_candidate(uv, desc, T_W_Bq.R, kf, calib, KP, VerificationParams())
     return verdict, T_mq
 
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 
 from viotb.envs.data.validate import IMU_GAP_POLICIES
+from viotb.envs.run.loop_glue import LoopOptions
 from viotb.vio.health import HealthParams
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.window import WindowParams
@@ -54,6 +55,7 @@ class EvalOptions:
         report: Write the report (PNGs, ``report.json``) into the output folder
             (:mod:`viotb.envs.tools.eval_report`).
         rerun: With ``report``, also write a rerun recording ``eval.rrd``.
+        loop: Loop closure beside the estimator (:class:`~viotb.envs.run.loop_glue.LoopOptions`); None = off.
     """
 
     estimator: str = "msckf"
@@ -72,6 +74,7 @@ class EvalOptions:
     health: HealthParams | None = None
     report: bool = False
     rerun: bool = False
+    loop: LoopOptions | None = None
 
     def __post_init__(self) -> None:
         """Reject a negative ``max_frames``, an unknown gap policy and a tolerance <= 1 period."""

@@ -23,6 +23,7 @@ from viotb.envs.data.eval_frames import (
 )
 from viotb.envs.data.eval_options import NULL_REASONS, EvalOptions
 from viotb.envs.data.tum import write_tum
+from viotb.envs.run.loop_glue import apply_loop_closure
 from viotb.envs.run.replay import MonitoredRun, replay
 from viotb.envs.tools.outdir import atomic_out_dir
 from viotb.vio.factory import make_estimator
@@ -185,6 +186,13 @@ def evaluate_dataset(
         estimates = [
             e for e, h in zip(run.estimates, run.health, strict=True) if e is not None and not h.diverged
         ]
+        loop_result: dict = {}
+        if opts.loop is not None:  # the estimates become the loop-closed ones; odometry metrics come along
+            records = [
+                {"t_s": float(t), "tracked_features": h.tracked_features}
+                for t, h in zip(run.frame_t_imu_s, run.health, strict=True)
+            ]
+            estimates, loop_result = apply_loop_closure(ds, estimates, records, opts.loop, tmp_dir)
         est_traj = estimates_to_trajectory(estimates)
         write_tum(tmp_dir / "estimate_tum.txt", est_traj)
         result: dict = {
@@ -234,6 +242,7 @@ def evaluate_dataset(
                     "position covariance)"
                 )
         result["frames"] = len(ms)
+        result.update(loop_result)
         trace = diagnosis.trace_from_run(run, conditions_from=first_run)
         if first_run.monitor is not None:
             result["conditions"] = diagnosis.conditions_json(first_run.monitor.report(), trace)

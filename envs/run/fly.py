@@ -21,6 +21,7 @@ import numpy as np
 from viotb.controllers import SE3Controller, SE3Gains
 from viotb.controllers.types import NavState
 from viotb.envs.run.closed_loop import ClosedLoopSim
+from viotb.envs.run.loop_glue import FlightLoopClosure, LoopOptions, require_images
 from viotb.envs.run.mission import TakeoffSequence
 from viotb.envs.scenarios.failures import failure_fly_scenario
 from viotb.envs.scenarios.registry import get_fly_scenario
@@ -75,6 +76,7 @@ def fly(
     online_calibration: bool | None = None,
     severity: float | None = None,
     edit_rig: Callable[[RigConfig], RigConfig] | None = None,
+    loop_closure: bool | LoopOptions = False,
 ) -> tuple[dict, FlightLog]:
     """Fly a closed-loop scenario.
 
@@ -92,6 +94,8 @@ def fly(
         severity: For a ``fly-fail-*`` scenario with a knob, its severity
             (``viotb.envs.scenarios.failures.failure_fly_scenario``); None = the registered default.
         edit_rig: Applied last to the run's rig (estimator settings, sensors, wind...; sweeps use it).
+        loop_closure: Loop closure beside the filter (True: default options); the controller then flies on
+            the corrected pose (``viotb.envs.run.loop_glue.FlightLoopClosure``). Needs the ``klt`` front end.
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -112,7 +116,11 @@ def fly(
         rig = replace(rig, online_calibration=bool(online_calibration))
     if edit_rig is not None:
         rig = edit_rig(rig)
+    lc_opts = LoopOptions() if loop_closure is True else (loop_closure or None)
+    if lc_opts is not None:
+        require_images(frontend)
     loop = ClosedLoopSim(rig, seed=seed)
+    lc = None if lc_opts is None else FlightLoopClosure(lc_opts, loop.calib_given, frontend)
     controller = SE3Controller(vehicle_params_from_model(loop.sim.model), gains or SE3Gains())
     log = FlightLog()
     ctrl_dt = 1.0 / CONTROL_RATE_HZ
@@ -127,7 +135,7 @@ def fly(
     last_imu_seen = None
     wall0 = time.perf_counter()
     while loop.t_s < total_s - 1e-9:
-        est = loop.estimate()
+        est = loop.estimate() if lc is None else lc.correct(loop.t_s, loop.estimate())
         health = loop.health()
         if health.diverged or loop.estimator_failure:
             # Stop safely: motors off, flight ended, the reason reported (no exception escapes).
@@ -165,6 +173,10 @@ def fly(
             log.frame_t_s.append(loop.t_s)
             log.frame_features.append(h.tracked_features)
             log.frame_conditions.append(h.conditions)
+            if lc is not None and loop.last_frame is not None and seq.phase == "mission":
+                # From the mission on: keyframes of the climb carry the filter's unconverged scale.
+                frame_image = loop.last_frame.image
+                lc.on_frame(loop.t_s, frame_image, loop.estimate(), h.tracked_features, loop.truth())
         if on_tick is not None:
             on_tick(loop, log)
         if progress is not None:
@@ -198,6 +210,8 @@ def fly(
             ],
         }
     )
+    if lc is not None:
+        metrics.update(lc.finish())
     return metrics, log
 
 

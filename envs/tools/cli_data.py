@@ -116,6 +116,13 @@ def eval_(
         True, "--report/--no-report", help="Write PNGs and report.json into --out."
     ),
     rerun: bool = typer.Option(False, "--rerun", help="Also write a rerun recording OUT/eval.rrd."),
+    loop_closure: bool = typer.Option(
+        False, "--loop-closure", help="Loop closure beside the estimator (OUT/loop_closures.csv)."
+    ),
+    map_in: Path | None = typer.Option(
+        None, "--map-in", help="Start in this saved loop-closure map's frame."
+    ),
+    map_out: Path | None = typer.Option(None, "--map-out", help="Save the loop-closure map here (.npz)."),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
@@ -132,6 +139,9 @@ def eval_(
     if calibrate and estimator != "msckf":
         fail(f"--calibrate needs --estimator msckf: {estimator!r} has no online calibration")
     try:
+        from viotb.envs.run.loop_glue import loop_options
+
+        loop = loop_options(loop_closure, map_in, map_out)
         opts = EvalOptions(
             estimator=estimator,
             frontend=frontend,
@@ -142,6 +152,7 @@ def eval_(
             calibrate=calibrate,
             report=write_report,
             rerun=rerun,
+            loop=loop,
         )
         with progress(f"eval {estimator}", not quiet) as report:
             result = evaluate_dataset(dataset, out, opts, report, overwrite=overwrite)

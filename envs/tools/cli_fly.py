@@ -37,6 +37,9 @@ def fly(
         False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (MSCKF)."
     ),
     severity: float | None = typer.Option(None, "--severity", help="Severity of a fly-fail-* scenario."),
+    loop_closure: bool = typer.Option(
+        False, "--loop-closure", help="Loop closure; the controller gets the corrected pose (needs klt)."
+    ),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
@@ -59,6 +62,7 @@ def fly(
                 report,
                 online_calibration=calibrate or None,
                 severity=severity,
+                loop_closure=loop_closure,
             )
     except ValueError as exc:
         fail(str(exc))

@@ -5,10 +5,12 @@ estimator's pose in its own odometry frame); read the corrected pose with ``corr
 """
 
 from viotb.vio.loop.closer import LoopCloser
+from viotb.vio.loop.consistency import ConsistencyGate
 from viotb.vio.loop.correction import CorrectionBlender
 from viotb.vio.loop.frames import RigidTransform
 from viotb.vio.loop.keyframes import Keyframe, KeyframeDatabase
 from viotb.vio.loop.params import (
+    ConsistencyParams,
     KeyframeParams,
     LoopClosureParams,
     PlaceRecognitionParams,
@@ -19,6 +21,8 @@ from viotb.vio.loop.pose_graph import Edge4Dof, PoseGraph4Dof
 from viotb.vio.loop.records import FrameTiming, LoopClosure
 
 __all__ = [
+    "ConsistencyGate",
+    "ConsistencyParams",
     "CorrectionBlender",
     "Edge4Dof",
     "FrameTiming",

@@ -11,15 +11,21 @@ DBoW2's L1 score ``s(a, b) = 1 - 0.5 |a/|a|_1 - b/|b|_1|_1`` in [0, 1] (Galvez-L
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
+from scipy import sparse
 
 DESCRIPTOR_BYTES = 32
 """Bytes of one ORB descriptor (256 bits)."""
 
+VOCABULARY_FILE = Path(__file__).with_name("orb_vocabulary.npz")
+"""The shipped vocabulary (``vocabulary`` key, shape (512, 32) uint8)."""
+
 
 def train_vocabulary(descriptors: np.ndarray, n_words: int, iterations: int, seed: int) -> np.ndarray:
-    """k-majority clustering of binary descriptors.
+    """k-majority clustering of binary descriptors (vectorized: ~0.1 s for 10k descriptors, 512 words).
 
     Args:
         descriptors: ORB descriptors, shape (N, 32) uint8.
@@ -34,13 +40,15 @@ def train_vocabulary(descriptors: np.ndarray, n_words: int, iterations: int, see
     rng = np.random.default_rng(seed)
     n_words = min(n_words, len(descriptors))
     centres = descriptors[rng.choice(len(descriptors), n_words, replace=False)].copy()
-    bits = np.unpackbits(descriptors, axis=1)
+    bits = np.unpackbits(descriptors, axis=1).astype(np.float32)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     for _ in range(iterations):
         word = _nearest(matcher, descriptors, centres)
         counts = np.bincount(word, minlength=n_words)
-        sums = np.zeros((n_words, bits.shape[1]), dtype=np.int64)
-        np.add.at(sums, word, bits)
+        one_hot = sparse.csr_matrix(
+            (np.ones(len(word), dtype=np.float32), (word, np.arange(len(word)))), shape=(n_words, len(word))
+        )
+        sums = np.asarray(one_hot @ bits)
         filled = counts > 0
         centres[filled] = np.packbits(2 * sums[filled] > counts[filled, None], axis=1)
         empty = np.flatnonzero(~filled)
@@ -49,11 +57,23 @@ def train_vocabulary(descriptors: np.ndarray, n_words: int, iterations: int, see
     return centres
 
 
+def shipped_vocabulary() -> np.ndarray | None:
+    """The vocabulary shipped with the package (``vio/loop/orb_vocabulary.npz``), or None when absent.
+
+    Trained once (:func:`train_vocabulary`, 512 words) on ORB descriptors of rendered frames of the project's
+    scenes (textured room, pillars, dark room) and of the EuRoC V1_01 micro set, so a run never stalls to
+    train one and two runs share their words (a saved map stays valid).
+    """
+    if not VOCABULARY_FILE.is_file():
+        return None
+    with np.load(VOCABULARY_FILE) as z:
+        return np.ascontiguousarray(z["vocabulary"], dtype=np.uint8)
+
+
 def _nearest(matcher: cv2.BFMatcher, descriptors: np.ndarray, centres: np.ndarray) -> np.ndarray:
     matches = matcher.match(descriptors, centres)
     word = np.empty(len(descriptors), dtype=np.int64)
-    for m in matches:
-        word[m.queryIdx] = m.trainIdx
+    word[[m.queryIdx for m in matches]] = [m.trainIdx for m in matches]
     return word
 
 

@@ -1,18 +1,22 @@
 """The loop-closure facade: one call per camera frame, decoupled from the estimator.
 
 Per frame: ``add_frame(t, image, R_WB, p_WB, calib)`` with the estimator's pose in its own odometry frame.
-Keyframes get ORB features and triangulated landmarks; each new keyframe queries the bag-of-words database
-(keyframes of its own sequence only when ``min_time_gap_s`` older; other localized sequences and a loaded map
-all), verifies the best candidates with PnP RANSAC, and on success adds a loop edge and solves the 4-DOF pose
-graph. The result is published as ``T_W_corrected_from_W_odom`` (blended in over ``blend_duration_s``), so the
-estimator's state is never touched: ``corrected_pose(t, R_WB, p_WB)`` maps any odometry pose to the map.
+Keyframes (every 0.3 m or 15 deg) get ORB features and landmarks triangulated against the previous keyframes;
+each new keyframe queries the bag-of-words database (keyframes of its own sequence only when
+``min_time_gap_s`` older; other localized sequences and a loaded map all), verifies the best candidates with
+PnP RANSAC, checks the first verified one against the odometry's drift bound and holds it until the next
+keyframe confirms it (:mod:`viotb.vio.loop.consistency`); then both loop edges go into the 4-DOF pose graph
+and it is solved. The result is published as ``T_W_corrected_from_W_odom`` (blended in over
+``blend_duration_s``), so the estimator's state is never touched: ``corrected_pose(t, R_WB, p_WB)`` maps any
+odometry pose to the map; ``smoothed_corrections`` gives the whole run's final (non-causal) corrections.
 
 Sequences and relocalization (VINS-Mono's ``sequence``): a tracking loss (``notify_tracking_lost()``, or a
 frame gap over ``tracking_loss_gap_s``) starts a new odometry sequence that is not localized: its keyframes
-stay out of the graph and the correction resets to identity until a keyframe is verified against a localized
-one; then ``T_map_odom`` of the sequence is the 4-DOF transform that puts the query where PnP says, the
-sequence joins the graph and the graph is solved. A run started with ``load_map`` is such a sequence: it
-localizes into the map's frame at its first recognized place, with the map's keyframes held fixed.
+stay out of the graph and the correction in force is kept (an estimator that coasts through a blackout keeps
+its frame) until two keyframes are verified against localized ones and agree; then ``T_map_odom`` of the
+sequence is the 4-DOF transform that puts the query where PnP says, the sequence joins the graph and the
+graph is solved. A run started with ``load_map`` is such a sequence: it localizes into the map's frame at its
+first recognized place (snapping, since its odometry frame was arbitrary), with the map's keyframes fixed.
 """
 
 from __future__ import annotations
@@ -23,23 +27,25 @@ from pathlib import Path
 import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.lie import rotz
-from viotb.vio.loop.bow import BowDatabase, train_vocabulary
+from viotb.vio.loop.bow import BowDatabase, shipped_vocabulary, train_vocabulary
+from viotb.vio.loop.consistency import Candidate, ConsistencyGate, make_candidate
 from viotb.vio.loop.correction import CorrectionBlender
 from viotb.vio.loop.frames import (
     RigidTransform,
     drift_4dof,
     heading_rad,
     horizontal_axis_B,
+    interpolate,
     loop_4dof,
     relative_4dof,
 )
 from viotb.vio.loop.keyframes import Keyframe, KeyframeDatabase
 from viotb.vio.loop.map_io import read_map_arrays, write_map_arrays
 from viotb.vio.loop.params import LoopClosureParams
-from viotb.vio.loop.pose_graph import Edge4Dof, PoseGraph4Dof
+from viotb.vio.loop.pose_graph import Edge4Dof, PoseGraph4Dof, SolveReport
 from viotb.vio.loop.records import FrameTiming, LoopClosure
 from viotb.vio.loop.serialize import keyframes_from_arrays, map_arrays
-from viotb.vio.loop.verification import VerifiedPose, verify_candidate
+from viotb.vio.loop.verification import verify_candidate
 
 
 class LoopCloser:
@@ -47,7 +53,8 @@ class LoopCloser:
 
     Args:
         params: All parameters.
-        vocabulary: Bag-of-words vocabulary, shape (W, 32) uint8; None trains one from the first keyframes.
+        vocabulary: Bag-of-words vocabulary, shape (W, 32) uint8; None takes the shipped one
+            (``recognition.shipped_vocabulary``) or trains one from the first keyframes.
     """
 
     def __init__(self, params: LoopClosureParams | None = None, vocabulary: np.ndarray | None = None) -> None:
@@ -56,7 +63,13 @@ class LoopCloser:
         self.db = KeyframeDatabase(self.params.keyframes)
         self.graph = PoseGraph4Dof(self.params.pose_graph)
         self.blender = CorrectionBlender(self.params.blend_duration_s)
+        if vocabulary is None and self.params.recognition.shipped_vocabulary:
+            vocabulary = shipped_vocabulary()
         self.bow: BowDatabase | None = None if vocabulary is None else BowDatabase(vocabulary)
+        self.gate = ConsistencyGate(self.params.consistency)
+        self.last_solve: SolveReport | None = None
+        self._path_m = 0.0  # odometry path length over keyframes of the current sequence (m)
+        self._path_at_anchor_m = 0.0  # ... at its last accepted closure (or its start)
         self.closures: list[LoopClosure] = []
         self.timings: list[FrameTiming] = []
         self.sequence = 0
@@ -64,10 +77,18 @@ class LoopCloser:
         self._map_edges: list[Edge4Dof] = []
         self._last_t_s: float | None = None
         self._lost = False
+        self._first_own_sequence = 0  # sequences below are a loaded map's
+        self._loaded_map = False
+        self._n_loaded_closures = 0
         self.heading_axis_B: np.ndarray | None = None  # set at the first keyframe or by load_map
 
     def _yaw(self, R_WB: np.ndarray) -> float:
         return heading_rad(R_WB, self.heading_axis_B)
+
+    @property
+    def run_closures(self) -> list[LoopClosure]:
+        """The closures accepted in this run (``closures`` also holds a loaded map's)."""
+        return self.closures[self._n_loaded_closures :]
 
     @property
     def localized(self) -> bool:
@@ -125,25 +146,19 @@ class LoopCloser:
         kf = Keyframe(
             len(self.db), float(t_s), self.sequence, R_WB.copy(), p_WB.copy(), uv, desc, landmarks_B
         )
-        prev = self.db.last_of_sequence(self.sequence)
+        recent = self.db.recent_of_sequence(self.sequence, self.params.keyframes.triangulation_keyframes)
+        for older in recent:
+            self.db.triangulate(older, kf, calib)
+        prev = recent[0] if recent else None
         if prev is not None:
-            self.db.triangulate(prev, kf, calib)
+            self._path_m += float(np.linalg.norm(kf.p_WB_odom - prev.p_WB_odom))
         t1 = time.perf_counter()
         candidates = self._candidates(kf)
         t2 = time.perf_counter()
-        verified, match = None, None
-        for cand in candidates:
-            verdict = verify_candidate(
-                uv, desc, R_WB, cand, calib, self.params.keyframes, self.params.verification
-            )
-            if verdict.pose is not None:
-                verified, match = verdict.pose, cand
-                break
-        t3 = time.perf_counter()
         self._insert(kf, prev)
-        closure = None
-        if verified is not None and match is not None:
-            closure = self._close(kf, match, verified)
+        accepted = self._verify(kf, candidates, calib)
+        t3 = time.perf_counter()
+        closure = self._close(accepted) if accepted else None
         t4 = time.perf_counter()
         self.timings.append(
             FrameTiming(
@@ -153,9 +168,36 @@ class LoopCloser:
         return closure
 
     def _start_sequence(self, t_s: float) -> None:
+        # The correction in force stays the best guess until the new sequence relocalizes (an estimator that
+        # coasts through a blackout keeps its frame).
         self.sequence = max([kf.sequence for kf in self.db.keyframes] + [self.sequence]) + 1
         self._lost = False
-        self.blender.set_target(t_s, RigidTransform.identity(), snap=True)
+        self._path_m = self._path_at_anchor_m = 0.0
+        self.gate.pending = None
+
+    def _verify(self, kf: Keyframe, candidates: list[Keyframe], calib: CameraCalibration) -> list[Candidate]:
+        """PnP-verify the candidates, check the first verified one against the drift bound, offer it."""
+        self.gate.expire(kf.t_s)
+        for match in candidates:
+            verdict = verify_candidate(
+                kf.keypoints_uv_px,
+                kf.descriptors,
+                kf.R_WB_odom,
+                match,
+                calib,
+                self.params.keyframes,
+                self.params.verification,
+            )
+            if verdict.pose is None:
+                continue
+            cand = make_candidate(kf, match, verdict.pose, self.heading_axis_B)
+            if self.localized:
+                predicted = RigidTransform(*self.blender.target.apply_pose(kf.R_WB_odom, kf.p_WB_odom))
+                path_m = self._path_m - self._path_at_anchor_m
+                if not self.gate.within_drift(cand, predicted, path_m, self.heading_axis_B):
+                    continue
+            return self.gate.confirm(cand, self.heading_axis_B)
+        return []
 
     def _candidates(self, kf: Keyframe) -> list[Keyframe]:
         rp = self.params.recognition
@@ -199,7 +241,8 @@ class LoopCloser:
         meas = relative_4dof(prev.R_WB_odom, prev.p_WB_odom, kf.R_WB_odom, kf.p_WB_odom, self.heading_axis_B)
         self.graph.add_edge(Edge4Dof(prev.index, kf.index, *meas))
 
-    def _close(self, kf: Keyframe, match: Keyframe, verified: VerifiedPose) -> LoopClosure:
+    def _close(self, accepted: list[Candidate]) -> LoopClosure:
+        kf, match, verified = accepted[-1].query, accepted[-1].match, accepted[-1].verified
         T_mq = verified.T_match_query
         relocalization = kf.sequence not in self._localized
         if relocalization:  # align the whole sequence to the map where PnP puts the query
@@ -212,31 +255,65 @@ class LoopCloser:
                 if i > 0:
                     self._odometry_edge(members[i - 1], k)
             self._localized.add(kf.sequence)
-        self.graph.add_edge(
-            Edge4Dof(
-                match.index, kf.index, *loop_4dof(match.R_WB_odom, T_mq, self.heading_axis_B), is_loop=True
-            )
-        )
-        self.graph.optimize()
+        for c in accepted:
+            meas = loop_4dof(c.match.R_WB_odom, c.verified.T_match_query, self.heading_axis_B)
+            self.graph.add_edge(Edge4Dof(c.match.index, c.query.index, *meas, is_loop=True))
+        self.last_solve = self.graph.optimize()
+        self._path_at_anchor_m = self._path_m
         for k in self.db.keyframes:
             if k.index in self.graph:
                 yaw, p = self.graph.node(k.index)
                 k.R_WB_map = rotz(yaw - self._yaw(k.R_WB_odom)) @ k.R_WB_odom
                 k.p_WB_map = p
+        # Localizing into a loaded map snaps (the odometry frame before was arbitrary: nothing to blend from);
+        # every other correction is blended in.
+        snap = relocalization and self._loaded_map and kf.sequence == self._first_own_sequence
         self.blender.set_target(
-            kf.t_s, drift_4dof(kf.R_WB_map, kf.p_WB_map, kf.R_WB_odom, kf.p_WB_odom, self.heading_axis_B)
-        )
-        closure = LoopClosure(
             kf.t_s,
-            match.t_s,
-            T_mq.p.copy(),
-            T_mq.quat_xyzw(),
-            verified.inliers,
-            verified.rms_px,
-            relocalization,
+            drift_4dof(kf.R_WB_map, kf.p_WB_map, kf.R_WB_odom, kf.p_WB_odom, self.heading_axis_B),
+            snap=snap,
         )
-        self.closures.append(closure)
-        return closure
+        for i, c in enumerate(accepted):
+            T = c.verified.T_match_query
+            self.closures.append(
+                LoopClosure(
+                    c.query.t_s,
+                    c.match.t_s,
+                    T.p.copy(),
+                    T.quat_xyzw(),
+                    c.verified.inliers,
+                    c.verified.rms_px,
+                    relocalization and i == len(accepted) - 1,
+                )
+            )
+        return self.closures[-1]
+
+    def smoothed_corrections(self, times_s: np.ndarray) -> list[RigidTransform]:
+        """The final (non-causal) correction at each time, from the pose graph as it stands now.
+
+        Each time takes the correction ``T_map_odom`` of the localized keyframes around it (interpolated
+        between the one before and the one after, of the same sequence); a time whose sequence never
+        localized keeps the correction in force then (identity before any). This is the loop-closed
+        trajectory of the whole run (VINS-Mono's pose-graph path), as opposed to ``corrected_pose``, which is
+        what was known at the time.
+        """
+        own = self._first_own_sequence
+        kfs = [k for k in self.db.keyframes if k.R_WB_map is not None and k.sequence >= own]
+        if not kfs:
+            return [self.correction(float(t)) for t in times_s]
+        kf_t = np.array([k.t_s for k in kfs])
+        axis = self.heading_axis_B
+        corr = [drift_4dof(k.R_WB_map, k.p_WB_map, k.R_WB_odom, k.p_WB_odom, axis) for k in kfs]
+        out = []
+        for t in np.asarray(times_s, dtype=float):
+            j = int(np.searchsorted(kf_t, t, side="right"))
+            before, after = max(j - 1, 0), min(j, len(kfs) - 1)
+            if kfs[before].sequence != kfs[after].sequence or before == after:
+                out.append(corr[before] if t >= kf_t[before] else corr[after])
+                continue
+            alpha = float(np.clip((t - kf_t[before]) / (kf_t[after] - kf_t[before]), 0.0, 1.0))
+            out.append(interpolate(corr[before], corr[after], alpha))
+        return out
 
     def save_map(self, path: Path | str) -> None:
         """Write the localized keyframes, their edges, the vocabulary and the closures (see ``map_io``).
@@ -277,5 +354,8 @@ class LoopCloser:
             self.graph.add_node(kf.index, self._yaw(kf.R_WB_map), kf.p_WB_map, fixed=True)
         self._map_edges = edges
         self.closures = closures
+        self._n_loaded_closures = len(closures)
         self._localized = {kf.sequence for kf in keyframes}
         self.sequence = max(self._localized, default=-1) + 1
+        self._first_own_sequence = self.sequence
+        self._loaded_map = True

@@ -3,7 +3,8 @@
 A frame becomes a keyframe when the estimated body moved ``min_translation_m``, turned ``min_rotation_deg`` or
 ``max_interval_s`` passed since the last keyframe of its odometry sequence. Each keyframe keeps ORB keypoints
 and binary descriptors, and a landmark per feature where one is known. Landmarks are triangulated (linear DLT,
-``cv2.triangulatePoints``) from ORB matches with the previous keyframe of the same sequence, using the two
+``cv2.triangulatePoints``) from ORB matches with the previous keyframes of the same sequence (the last one,
+then older ones for features still without a landmark, a wider baseline), using the two
 *estimated* poses and the camera calibration, so PnP needs nothing from the estimator's internals. They are
 kept in the keyframe's body frame ``B`` (``landmarks_B``): a pose-graph correction that moves the keyframe
 moves
@@ -123,6 +124,16 @@ class KeyframeDatabase:
         """Most recent keyframe of an odometry sequence, or None."""
         index = self._last_of_sequence.get(sequence)
         return None if index is None else self.keyframes[index]
+
+    def recent_of_sequence(self, sequence: int, n: int) -> list[Keyframe]:
+        """Up to ``n`` most recent keyframes of an odometry sequence, newest first."""
+        out: list[Keyframe] = []
+        for kf in reversed(self.keyframes):
+            if len(out) >= n:
+                break
+            if kf.sequence == sequence:
+                out.append(kf)
+        return out
 
     def is_keyframe(self, t_s: float, R_WB: np.ndarray, p_WB: np.ndarray, sequence: int) -> bool:
         """Whether a frame at this estimated pose should become a keyframe of ``sequence``."""

@@ -65,7 +65,7 @@ class SolveReport:
 
 
 class PoseGraph4Dof:
-    """Nodes ``(yaw_rad, p_W)``, 4-DOF edges, fixed anchor nodes; the graph is rebuilt at each solve.
+    """Nodes ``(yaw_rad, p_W)``, 4-DOF edges, fixed anchor nodes; factors are kept, values rebuilt per solve.
 
     Args:
         params: Sigmas, kernel and iteration bound.
@@ -78,6 +78,9 @@ class PoseGraph4Dof:
         self._p_W: dict[int, np.ndarray] = {}
         self._fixed: set[int] = set()
         self.edges: list[Edge4Dof] = []
+        self._graph = gtsam.NonlinearFactorGraph()  # grown with each node and edge, not rebuilt per solve
+        self._noise_models = {False: self._noise(False), True: self._noise(True)}
+        self._anchor = gtsam.noiseModel.Isotropic.Sigma(6, self.params.anchor_sigma)
 
     def __contains__(self, key: int) -> bool:
         """True when ``key`` is a node."""
@@ -91,8 +94,10 @@ class PoseGraph4Dof:
         """Add (or reset) a node with its initial value; ``fixed`` nodes are held by a tight prior."""
         self._yaw_rad[key] = float(yaw_rad)
         self._p_W[key] = np.asarray(p_W, dtype=float).copy()
-        if fixed:
+        if fixed and key not in self._fixed:
             self._fixed.add(key)
+            pose = gtsam.Pose3(gtsam.Rot3(rotz(yaw_rad)), self._p_W[key])
+            self._graph.add(gtsam.PriorFactorPose3(key, pose, self._anchor))
 
     def add_edge(self, edge: Edge4Dof) -> None:
         """Add a measurement between two existing nodes.
@@ -104,6 +109,8 @@ class PoseGraph4Dof:
             if key not in self._yaw_rad:
                 raise KeyError(f"pose graph has no node {key}")
         self.edges.append(edge)
+        measured = gtsam.Pose3(gtsam.Rot3(rotz(edge.dyaw_rad)), np.asarray(edge.dp_m, dtype=float))
+        self._graph.add(gtsam.BetweenFactorPose3(edge.i, edge.j, measured, self._noise_models[edge.is_loop]))
 
     def node(self, key: int) -> tuple[float, np.ndarray]:
         """Current ``(yaw_rad, p_W)`` of a node."""
@@ -137,17 +144,10 @@ class PoseGraph4Dof:
         if not self._fixed:
             raise ValueError("pose graph needs at least one fixed node")
         t0 = time.perf_counter()
-        graph = gtsam.NonlinearFactorGraph()
+        graph = self._graph
         values = gtsam.Values()
         for key, yaw in self._yaw_rad.items():
             values.insert(key, gtsam.Pose3(gtsam.Rot3(rotz(yaw)), self._p_W[key]))
-        anchor = gtsam.noiseModel.Isotropic.Sigma(6, self.params.anchor_sigma)
-        for key in self._fixed:
-            graph.add(gtsam.PriorFactorPose3(key, values.atPose3(key), anchor))
-        noise = {False: self._noise(False), True: self._noise(True)}
-        for e in self.edges:
-            measured = gtsam.Pose3(gtsam.Rot3(rotz(e.dyaw_rad)), np.asarray(e.dp_m, dtype=float))
-            graph.add(gtsam.BetweenFactorPose3(e.i, e.j, measured, noise[e.is_loop]))
         lm_params = gtsam.LevenbergMarquardtParams()
         lm_params.setMaxIterations(self.params.max_iterations)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, lm_params)

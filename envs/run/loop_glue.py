@@ -1,0 +1,314 @@
+"""Loop closure beside an estimator on a recorded dataset: the glue of ``viotb eval --loop-closure``.
+
+The :class:`~viotb.vio.loop.LoopCloser` never feeds back into the estimator (it publishes a drift correction
+on the odometry), so on a replay it runs beside it frame by frame in the same order: one ``add_frame`` per
+estimated frame, with that frame's image and the estimate, and the corrected pose is read at once (causal,
+blended: what a controller would have received). A frame whose health reports no tracked feature after
+frames that had some (a blackout) tells the closer that tracking was lost, so the next keyframes start a new
+sequence that must relocalize against the map.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from viotb.envs.data.euroc import EurocDataset, load_image
+from viotb.vio.camera import CameraCalibration
+from viotb.vio.lie import rotmat_to_quat_wxyz
+from viotb.vio.loop import LoopCloser, LoopClosure, LoopClosureParams
+from viotb.vio.metrics import evaluate_trajectory
+from viotb.vio.types import StateEstimate, TrajectoryArrays
+
+CSV_COLUMNS = ("t_query_s", "t_match_s", "x", "y", "z", "qx", "qy", "qz", "qw", "inliers")
+"""Columns of ``loop_closures.csv`` (relative pose of the query body in the match body frame, m)."""
+
+
+@dataclass(frozen=True)
+class LoopOptions:
+    """Loop closure settings of one run.
+
+    Attributes:
+        params: Loop closer parameters.
+        map_in: Start in the frame of this saved map (``LoopCloser.load_map``), or None.
+        map_out: Save the map here at the end, or None.
+    """
+
+    params: LoopClosureParams = field(default_factory=LoopClosureParams)
+    map_in: Path | None = None
+    map_out: Path | None = None
+
+
+@dataclass
+class LoopRun:
+    """What the closer did over a run.
+
+    Attributes:
+        online: The estimates with the pose corrected as known at each frame (causal, blended).
+        final: The estimates with the final loop-closed correction (the pose graph at the end, interpolated
+            between keyframes: the whole run's trajectory in the map frame).
+        closer: The closer (closures, timings, graph).
+    """
+
+    online: list[StateEstimate]
+    final: list[StateEstimate]
+    closer: LoopCloser
+
+
+def run_loop_closure(
+    ds: EurocDataset, estimates: list[StateEstimate], health: list[dict], opts: LoopOptions
+) -> LoopRun:
+    """Feed every estimated frame with its image to a closer; returns the corrected estimates.
+
+    Args:
+        ds: The dataset (images and calibration).
+        estimates: The estimator's output, one per processed frame (IMU-clock times).
+        health: Per-frame health records of :func:`viotb.envs.data.evaluate.run_estimator`.
+        opts: Loop settings.
+    """
+    closer = LoopCloser(opts.params)
+    if opts.map_in is not None:
+        closer.load_map(opts.map_in)
+    cam_t_imu = ds.cam_t_s + ds.calib.time_offset_s
+    health_t = np.array([h["t_s"] for h in health]) if health else np.zeros(0)
+    tracked = np.array([h["tracked_features"] for h in health]) if health else np.zeros(0)
+    corrected: list[StateEstimate] = []
+    had_tracks = False
+    for e in estimates:
+        k = int(np.argmin(np.abs(cam_t_imu - e.t_s)))
+        h = int(np.argmin(np.abs(health_t - e.t_s))) if len(health_t) else -1
+        if h >= 0 and tracked[h] == 0 and had_tracks:
+            closer.notify_tracking_lost()
+        had_tracks = h < 0 or tracked[h] > 0
+        closer.add_frame(e.t_s, load_image(ds, k), e.R_WB, e.p_WB, ds.calib)
+        R, p = closer.corrected_pose(e.t_s, e.R_WB, e.p_WB)
+        corrected.append(replace(e, R_WB=R, p_WB=p))
+    if opts.map_out is not None:
+        closer.save_map(opts.map_out)
+    final = [
+        replace(e, R_WB=T.R @ e.R_WB, p_WB=T.R @ e.p_WB + T.p)
+        for e, T in zip(
+            estimates, closer.smoothed_corrections(np.array([e.t_s for e in estimates])), strict=True
+        )
+    ]
+    return LoopRun(corrected, final, closer)
+
+
+def estimates_to_trajectory(estimates: list[StateEstimate]) -> TrajectoryArrays:
+    """Stack estimates' times, positions and attitudes."""
+    return TrajectoryArrays(
+        t_s=np.array([e.t_s for e in estimates]),
+        p_WB=np.array([e.p_WB for e in estimates]).reshape(-1, 3),
+        quat_wxyz_WB=np.array([rotmat_to_quat_wxyz(e.R_WB) for e in estimates]).reshape(-1, 4),
+    )
+
+
+def write_loop_closures_csv(path: Path | str, closures: list[LoopClosure]) -> Path:
+    """Write ``loop_closures.csv`` (columns :data:`CSV_COLUMNS`, one row per accepted closure)."""
+    path = Path(path)
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(CSV_COLUMNS)
+        for c in closures:
+            w.writerow(
+                [f"{c.t_query_s:.9f}", f"{c.t_match_s:.9f}"]
+                + [f"{v:.6f}" for v in (*c.p_xyz, *c.quat_xyzw)]
+                + [c.inliers]
+            )
+    return path
+
+
+def returns_to_start(gt: TrajectoryArrays, radius_m: float = 0.3, leave_m: float = 1.0) -> np.ndarray:
+    """Indices of ground-truth poses closest to the start on each return (after leaving ``leave_m``)."""
+    d = np.linalg.norm(gt.p_WB - gt.p_WB[0], axis=1)
+    out, away, best = [], False, None
+    for i, di in enumerate(d):
+        if di > leave_m:
+            if best is not None:
+                out.append(best)
+            away, best = True, None
+        elif away and di < radius_m and (best is None or di < d[best]):
+            best = i
+    if best is not None:
+        out.append(best)
+    return np.array(out, dtype=np.int64)
+
+
+def return_errors_m(est: TrajectoryArrays, gt: TrajectoryArrays) -> list[float]:
+    """Error of the estimate's displacement from its first pose at each return of the truth to its start (m).
+
+    The estimate's displacement is rotated by the yaw between estimated and true attitude at the first pose.
+    """
+    from viotb.vio.lie import quat_wxyz_to_rotmat, rotz, yaw_from_rotmat
+    from viotb.vio.metrics import interpolate_trajectory
+
+    gt_at, inside = interpolate_trajectory(gt, est.t_s)
+    t = np.asarray(est.t_s)[inside]
+    p_e = np.asarray(est.p_WB)[inside]
+    q_e = np.asarray(est.quat_wxyz_WB)[inside]
+    if len(t) < 2:
+        return []
+    dyaw = yaw_from_rotmat(quat_wxyz_to_rotmat(gt_at.quat_wxyz_WB[0])) - yaw_from_rotmat(
+        quat_wxyz_to_rotmat(q_e[0])
+    )
+    gt_span = TrajectoryArrays(gt_at.t_s, gt_at.p_WB, gt_at.quat_wxyz_WB)
+    errs = []
+    for i in returns_to_start(gt_span):
+        d_est = rotz(dyaw) @ (p_e[i] - p_e[0])
+        errs.append(float(np.linalg.norm(d_est - (gt_span.p_WB[i] - gt_span.p_WB[0]))))
+    return errs
+
+
+def loop_metrics(run: LoopRun, odometry: TrajectoryArrays, gt: TrajectoryArrays | None) -> dict:
+    """JSON keys of a loop-closure run: counts, per-frame cost, odometry vs online vs final errors.
+
+    ``ate_posyaw_m`` of the final trajectory is the caller's (it evaluates what it writes); here
+    ``ate_posyaw_odometry_m`` and ``ate_posyaw_online_m``, and the error at each return to the start
+    (``return_to_start_err{_odometry,_online,}_m``, see :func:`return_errors_m`).
+    """
+    closer = run.closer
+    ms = np.array([ft.total_ms for ft in closer.timings]) if closer.timings else np.zeros(1)
+    kf_ms = [ft.total_ms for ft in closer.timings if ft.keyframe]
+    solve = [ft.optimize_ms for ft in closer.timings if ft.optimize_ms > 0]
+    out: dict = {
+        "loop_closures": len(closer.run_closures),
+        "relocalizations": sum(c.relocalization for c in closer.run_closures),
+        "loop_keyframes": len(closer.db),
+        "loop_ms_per_frame_median": float(np.median(ms)),
+        "loop_ms_per_frame_mean": float(np.mean(ms)),
+        "loop_ms_per_frame_p99": float(np.percentile(ms, 99)),
+        "loop_ms_per_keyframe_median": float(np.median(kf_ms)) if kf_ms else None,
+        "loop_solve_ms_max": float(max(solve)) if solve else None,
+        "loop_rejected_drift": closer.gate.rejected_drift,
+        "loop_unconfirmed": closer.gate.unconfirmed,
+    }
+    if gt is not None and len(odometry.t_s) >= 3:
+        online = estimates_to_trajectory(run.online)
+        final = estimates_to_trajectory(run.final)
+        out["ate_posyaw_odometry_m"] = evaluate_trajectory(odometry, gt)["ate_posyaw_m"]
+        out["ate_posyaw_online_m"] = evaluate_trajectory(online, gt)["ate_posyaw_m"]
+        out["return_to_start_err_odometry_m"] = return_errors_m(odometry, gt)
+        out["return_to_start_err_online_m"] = return_errors_m(online, gt)
+        out["return_to_start_err_m"] = return_errors_m(final, gt)
+    return out
+
+
+def apply_loop_closure(
+    ds: EurocDataset, estimates: list[StateEstimate], health: list[dict], opts: LoopOptions, out_dir: Path
+) -> tuple[list[StateEstimate], dict]:
+    """``viotb eval --loop-closure``: run the closer, write its files, return the final estimates and keys.
+
+    Writes ``out_dir/loop_closures.csv``, ``estimate_odometry_tum.txt`` (the estimator's own poses) and
+    ``estimate_online_tum.txt`` (corrected as known at each frame); the caller writes the returned final
+    loop-closed estimates as ``estimate_tum.txt`` and evaluates them (``ate_posyaw_m``).
+    """
+    from viotb.envs.data.tum import write_tum
+
+    run = run_loop_closure(ds, estimates, health, opts)
+    out_dir = Path(out_dir)
+    write_loop_closures_csv(out_dir / "loop_closures.csv", run.closer.run_closures)
+    odometry = estimates_to_trajectory(estimates)
+    if estimates:
+        write_tum(out_dir / "estimate_odometry_tum.txt", odometry)
+        write_tum(out_dir / "estimate_online_tum.txt", estimates_to_trajectory(run.online))
+    return run.final, loop_metrics(run, odometry, ds.groundtruth if len(estimates) >= 3 else None)
+
+
+def loop_options(
+    enabled: bool, map_in: Path | None = None, map_out: Path | None = None
+) -> LoopOptions | None:
+    """The CLI's ``--loop-closure [--map-in FILE] [--map-out FILE]`` as options (None when off).
+
+    Raises:
+        ValueError: A map flag without ``--loop-closure``, or ``--map-in`` that is not a file.
+    """
+    if not enabled:
+        if map_in is not None or map_out is not None:
+            raise ValueError("--map-in/--map-out need --loop-closure")
+        return None
+    if map_in is not None and not Path(map_in).is_file():
+        raise ValueError(f"--map-in {map_in}: no such file")
+    return LoopOptions(map_in=map_in, map_out=map_out)
+
+
+def require_images(frontend: str) -> None:
+    """Loop closure works on camera images (ORB features).
+
+    Raises:
+        ValueError: ``frontend`` is not ``"klt"`` (the ``sim`` front end renders no images).
+    """
+    if frontend != "klt":
+        raise ValueError(
+            f"loop closure needs camera images: the {frontend!r} front end has none; use --frontend klt"
+        )
+
+
+class FlightLoopClosure:
+    """Loop closure in flight: the closer beside the filter, the controller on the blended corrected pose.
+
+    The filter's own state is never touched: each delivered frame goes to the closer with the filter's
+    estimate, and ``correct`` maps the estimate the controller is about to use into the map frame with the
+    correction in force (blended over ``blend_duration_s``, so no jump reaches the controller).
+
+    Args:
+        opts: Loop settings.
+        calib: The camera calibration the estimator is told.
+        frontend: The run's front end; loop closure needs images.
+
+    Raises:
+        ValueError: ``frontend == "sim"`` (it renders no images).
+    """
+
+    def __init__(self, opts: LoopOptions, calib: CameraCalibration, frontend: str) -> None:
+        """A closer, loaded from ``opts.map_in`` when given."""
+        require_images(frontend)
+        self.opts, self.calib = opts, calib
+        self.closer = LoopCloser(opts.params)
+        if opts.map_in is not None:
+            self.closer.load_map(opts.map_in)
+        self.odometry: list[StateEstimate] = []
+        self.online: list[StateEstimate] = []
+        self.truth: list[StateEstimate] = []
+        self._had_tracks = False
+
+    def on_frame(
+        self,
+        t_s: float,
+        image_u8: np.ndarray | None,
+        est: StateEstimate | None,
+        tracked: int,
+        truth: StateEstimate | None = None,
+    ) -> None:
+        """A delivered frame with the filter's estimate after it (skipped before initialization).
+
+        ``truth`` (the simulator's pose then, optional) feeds the odometry-vs-corrected metrics.
+        """
+        if est is None or image_u8 is None:
+            return
+        if tracked == 0 and self._had_tracks:
+            self.closer.notify_tracking_lost()
+        self._had_tracks = tracked > 0
+        self.closer.add_frame(t_s, image_u8, est.R_WB, est.p_WB, self.calib)
+        self.odometry.append(replace(est, t_s=t_s))
+        self.online.append(self.correct(t_s, self.odometry[-1]))
+        if truth is not None:
+            self.truth.append(replace(truth, t_s=t_s))
+
+    def correct(self, t_s: float, est: StateEstimate | None) -> StateEstimate | None:
+        """The estimate in the map frame (attitude, position and velocity) with the correction in force."""
+        if est is None:
+            return None
+        T = self.closer.correction(t_s)
+        return replace(est, R_WB=T.R @ est.R_WB, p_WB=T.R @ est.p_WB + T.p, v_WB=T.R @ est.v_WB)
+
+    def finish(self) -> dict:
+        """Save the map when asked; the JSON keys of the closer (closures, cost)."""
+        if self.opts.map_out is not None:
+            self.closer.save_map(self.opts.map_out)
+        run = LoopRun(self.online, self.online, self.closer)
+        gt = estimates_to_trajectory(self.truth) if len(self.truth) == len(self.odometry) else None
+        out = loop_metrics(run, estimates_to_trajectory(self.odometry), gt)
+        out["loop_closure_rows"] = [c.as_row() for c in self.closer.run_closures]
+        return out
