@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from viotb.envs.data.euroc import read_euroc
-from viotb.envs.data.evaluate import EvalOptions, _interpolate_pose, evaluate_dataset
+from viotb.envs.data.eval_frames import interpolate_pose
+from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 from viotb.envs.data.record import record_scenario
 from viotb.envs.run.fly import fly
 from viotb.envs.run.loop_glue import (
@@ -50,8 +51,8 @@ def test_eval_with_loop_closure_writes_closures_and_keys(circle):
     # Every accepted closure is right: relative pose within 5 cm and 1 deg of the truth.
     gt = read_euroc(root / "data").groundtruth
     for r in rows:
-        T_m = RigidTransform(*_interpolate_pose(gt, float(r["t_match_s"])))
-        T_q = RigidTransform(*_interpolate_pose(gt, float(r["t_query_s"])))
+        T_m = RigidTransform(*interpolate_pose(gt, float(r["t_match_s"])))
+        T_q = RigidTransform(*interpolate_pose(gt, float(r["t_query_s"])))
         T_true = T_m.inverse() @ T_q
         R = Rotation.from_quat([float(r[k]) for k in ("qx", "qy", "qz", "qw")]).as_matrix()
         p = np.array([float(r[k]) for k in "xyz"])
