@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 from viotb.envs.data.tum import write_tum
 from viotb.envs.run.headset import HeadsetRun, prediction_relative_to_truth
+from viotb.envs.tools.cli_common import write_json
 from viotb.vio.headset_metrics import highpass, position_errors_W, rotation_errors_W
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
@@ -37,7 +37,7 @@ def write_headset_outputs(run: HeadsetRun, result: dict, out_dir: Path) -> list[
     paths.append(write_headset_rrd(run, out_dir / "headset.rrd"))
     result = dict(result, plots=[str(p) for p in paths if p.suffix == ".png"], recording=str(paths[-1]))
     metrics = out_dir / "metrics.json"
-    metrics.write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
+    write_json(metrics, result)
     return [*paths, metrics]
 
 
