@@ -190,3 +190,18 @@ def test_no_source_file_over_500_lines_and_each_says_what_it_owns():
             undocumented.append(mod)
     assert not long_files, long_files
     assert not undocumented, undocumented
+
+
+def test_no_merge_conflict_markers_left_in_the_tree():
+    markers = ("<<<<<<< ", ">>>>>>> ")
+    bad = []
+    for pattern in ("*.py", "*.md", "*.toml", "*.yaml", "*.yml", "*.sh"):
+        for path in ROOT.rglob(pattern):
+            if any(
+                part.startswith(".") or part in {"build", "dist"} for part in path.relative_to(ROOT).parts
+            ):
+                continue
+            for k, line in enumerate(path.read_text(errors="replace").splitlines(), start=1):
+                if line.startswith(markers):
+                    bad.append(f"{path.relative_to(ROOT)}:{k}")
+    assert not bad, bad
