@@ -1,5 +1,9 @@
 """EuRoC ASL dataset folders: the writer (``viotb record``), in the layout that :mod:`.euroc` reads.
 
+:class:`EurocStreamWriter` takes the IMU and ground truth in chunks and the frames one at a time and writes
+each row as it comes, so a long recording starts writing at once and its memory stays flat;
+:func:`write_euroc` feeds it whole arrays.
+
 A stereo rig writes ``cam1`` beside ``cam0`` exactly as the stereo EuRoC folders do: the same stamps, its own
 ``sensor.yaml`` with its own ``T_BS``.
 """
@@ -8,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from pathlib import Path
+from types import TracebackType
 
 import cv2
 import numpy as np
@@ -122,7 +127,9 @@ def write_euroc(
     calib_right: CameraCalibration | None = None,
     exposure_s: float | None = None,
 ) -> Path:
-    """Write a EuRoC ASL tree under ``out_dir/mav0`` and return the ``mav0`` path.
+    """Write a EuRoC ASL tree under ``out_dir/mav0`` from whole arrays; returns the ``mav0`` path.
+
+    The rows are written by :class:`EurocStreamWriter` (the writer of ``viotb record``), fed all at once.
 
     Args:
         out_dir: Output folder (created).
@@ -141,87 +148,146 @@ def write_euroc(
         exposure_s: Shutter time (s) written to the cameras' ``sensor.yaml`` (``exposure_time_s``); None =
             not recorded.
     """
-    mav0 = Path(out_dir) / "mav0"
-    imu_dir = mav0 / "imu0"
-    imu_dir.mkdir(parents=True, exist_ok=True)
-
-    imu_t_ns = _to_ns(imu.t_s, "IMU")
-    n = len(imu_t_ns)
-    if imu.gyro_B_rad_s.shape != (n, 3) or imu.accel_B_m_s2.shape != (n, 3):
-        raise ValueError(f"write_euroc: IMU arrays must be ({n}, 3)")
-    values = np.hstack([imu.gyro_B_rad_s, imu.accel_B_m_s2])
-    if not np.all(np.isfinite(values)):
-        row = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
-        raise ValueError(f"write_euroc: IMU row {row} is not finite: {values[row].tolist()}")
-    with (imu_dir / "data.csv").open("w", newline="") as handle:
-        handle.write(IMU_HEADER + "\n")
-        handle.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(imu_t_ns, values, strict=True))
     if imu_rate_hz is None:
-        imu_rate_hz = float(1.0 / np.median(np.diff(imu.t_s))) if n > 1 else 200.0
-    _write_imu_yaml(imu_dir / "sensor.yaml", imu_noise, imu_rate_hz)
-    calibs = [calib] if calib_right is None else [calib, calib_right]
-    cam_dirs = [mav0 / f"cam{k}" for k in range(len(calibs))]
-    for c, d in zip(calibs, cam_dirs, strict=True):
-        (d / "data").mkdir(parents=True, exist_ok=True)
-        _write_camera_yaml(d / "sensor.yaml", c, exposure_s)
+        imu_rate_hz = float(1.0 / np.median(np.diff(imu.t_s))) if len(imu.t_s) > 1 else 200.0
+    with EurocStreamWriter(out_dir, calib, calib_right, exposure_s) as writer:
+        writer.imu(imu)
+        for t_s, *images in frames:
+            writer.frame(t_s, *images)
+        if groundtruth is not None:
+            zeros = np.zeros((len(groundtruth), 3))
+            bw = zeros if gt_gyro_bias is None else np.asarray(gt_gyro_bias, dtype=float)
+            ba = zeros if gt_accel_bias is None else np.asarray(gt_accel_bias, dtype=float)
+            writer.groundtruth(groundtruth, bw, ba)
+        return writer.finish(imu_noise, imu_rate_hz, landmarks_W)
 
-    last_ns = -1
-    handles = [(d / "data.csv").open("w", newline="") for d in cam_dirs]
-    try:
-        for handle in handles:
-            handle.write(CAM_HEADER + "\n")
-        for i, item in enumerate(frames):
-            t_s, images = item[0], item[1:]
-            if len(images) != len(calibs):
-                raise ValueError(
-                    f"write_euroc: frame {i} carries {len(images)} image(s) for {len(calibs)} camera(s)"
-                )
-            t_ns = int(_to_ns(np.array([t_s]), "camera")[0])
-            if t_ns <= last_ns:
-                raise ValueError(f"write_euroc: camera times must strictly increase, frame {i} at {t_s} s")
-            for k, (image, c, d, handle) in enumerate(zip(images, calibs, cam_dirs, handles, strict=True)):
-                image = np.asarray(image)
-                cam = c.camera
-                if image.dtype != np.uint8 or image.shape != (cam.height, cam.width):
-                    raise ValueError(
-                        f"write_euroc: frame {i}{' of cam1' if k else ''} must be uint8 of shape "
-                        f"({cam.height}, {cam.width}), got {image.dtype} {image.shape}"
-                    )
-                name = f"{t_ns}.png"
-                if not cv2.imwrite(str(d / "data" / name), image):
-                    raise ValueError(f"write_euroc: could not write {d / 'data' / name}")
-                handle.write(f"{t_ns},{name}\n")
-            last_ns = t_ns
-    finally:
-        for handle in handles:
-            handle.close()
 
-    if groundtruth is not None:
-        gt_dir = mav0 / "state_groundtruth_estimate0"
-        gt_dir.mkdir(parents=True, exist_ok=True)
-        m = len(groundtruth)
-        gt_t_ns = _to_ns(groundtruth.t_s, "ground-truth")
-        zeros = np.zeros((m, 3))
-        v = zeros if groundtruth.v_WB is None else groundtruth.v_WB
-        bw = zeros if gt_gyro_bias is None else np.asarray(gt_gyro_bias, dtype=float)
-        ba = zeros if gt_accel_bias is None else np.asarray(gt_accel_bias, dtype=float)
-        table = np.hstack([groundtruth.p_WB, groundtruth.quat_wxyz_WB, v, bw, ba])
+class EurocStreamWriter:
+    """Writes ``out_dir/mav0`` row by row; use as a context manager, then :meth:`finish`.
+
+    Args:
+        out_dir: Output folder (``mav0`` is created inside).
+        calib: Camera calibration (for the frame size check and ``cam0/sensor.yaml``).
+        calib_right: Calibration of a stereo rig's right camera (``cam1``, same stamps); None = mono.
+        exposure_s: Shutter time (s) written to the cameras' ``sensor.yaml`` (``exposure_time_s``); None = not
+            written.
+    """
+
+    def __init__(
+        self,
+        out_dir: Path | str,
+        calib: CameraCalibration,
+        calib_right: CameraCalibration | None = None,
+        exposure_s: float | None = None,
+    ) -> None:
+        """Create the folders and open the CSV files with their headers."""
+        self.mav0 = Path(out_dir) / "mav0"
+        self._calibs = [calib] if calib_right is None else [calib, calib_right]
+        self._exposure_s = exposure_s
+        for sub in ("imu0", *(f"cam{k}/data" for k in range(len(self._calibs)))):
+            (self.mav0 / sub).mkdir(parents=True, exist_ok=True)
+        self._imu = (self.mav0 / "imu0" / "data.csv").open("w", newline="")
+        self._cams = [
+            (self.mav0 / f"cam{k}" / "data.csv").open("w", newline="") for k in range(len(self._calibs))
+        ]
+        self._gt = None  # opened by the first ground-truth chunk: a dataset may have none
+        self._imu.write(IMU_HEADER + "\n")
+        for cam in self._cams:
+            cam.write(CAM_HEADER + "\n")
+        self._last_ns = {"IMU": -1, "camera": -1, "ground-truth": -1}
+        self.frames = 0
+        self.imu_samples = 0
+
+    def _stamps(self, t_s: np.ndarray, what: str) -> np.ndarray:
+        t_ns = _to_ns(t_s, what)
+        if t_ns.size and t_ns[0] <= self._last_ns[what]:
+            raise ValueError(f"write_euroc: {what} times must strictly increase (across chunks)")
+        if t_ns.size:
+            self._last_ns[what] = int(t_ns[-1])
+        return t_ns
+
+    def imu(self, chunk: ImuSeries) -> None:
+        """Append IMU readings (times after those already written)."""
+        if chunk.gyro_B_rad_s.shape != (len(chunk), 3) or chunk.accel_B_m_s2.shape != (len(chunk), 3):
+            raise ValueError(f"write_euroc: IMU arrays must be ({len(chunk)}, 3)")
+        values = np.hstack([chunk.gyro_B_rad_s, chunk.accel_B_m_s2])
+        if not np.all(np.isfinite(values)):
+            row = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
+            raise ValueError(f"write_euroc: IMU row {row} is not finite: {values[row].tolist()}")
+        t_ns = self._stamps(chunk.t_s, "IMU")
+        self._imu.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(t_ns, values, strict=True))
+        self.imu_samples += len(t_ns)
+
+    def groundtruth(self, chunk: TrajectoryArrays, gyro_bias: np.ndarray, accel_bias: np.ndarray) -> None:
+        """Append ground-truth rows: pose, velocity and the true biases (rad/s, m/s^2) at each time."""
+        m = len(chunk)
+        v = np.zeros((m, 3)) if chunk.v_WB is None else chunk.v_WB
+        table = np.hstack([chunk.p_WB, chunk.quat_wxyz_WB, v, gyro_bias, accel_bias])
         if table.shape != (m, 16):
             raise ValueError(f"write_euroc: ground-truth arrays must all have {m} rows, got {table.shape}")
-        with (gt_dir / "data.csv").open("w", newline="") as handle:
-            handle.write(GT_HEADER + "\n")
-            handle.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(gt_t_ns, table, strict=True))
-        (gt_dir / "sensor.yaml").write_text(
-            "%YAML:1.0\nsensor_type: visual-inertial\ncomment: vio-testbed simulation ground truth (exact).\n"
-        )
+        t_ns = self._stamps(chunk.t_s, "ground-truth")
+        if self._gt is None:
+            (self.mav0 / "state_groundtruth_estimate0").mkdir(parents=True, exist_ok=True)
+            self._gt = (self.mav0 / "state_groundtruth_estimate0" / "data.csv").open("w", newline="")
+            self._gt.write(GT_HEADER + "\n")
+        self._gt.writelines(f"{t},{_fmt(row)}\n" for t, row in zip(t_ns, table, strict=True))
 
-    if landmarks_W is not None:
-        landmarks_W = np.asarray(landmarks_W, dtype=float)
-        if landmarks_W.ndim != 2 or landmarks_W.shape[1] != 3:
-            raise ValueError(f"write_euroc: landmarks_W must be (L, 3), got {landmarks_W.shape}")
-        lm_dir = mav0 / "sim_landmarks0"
-        lm_dir.mkdir(parents=True, exist_ok=True)
-        with (lm_dir / "data.csv").open("w", newline="") as handle:
-            handle.write(LANDMARK_HEADER + "\n")
-            handle.writelines(f"{i},{_fmt(p)}\n" for i, p in enumerate(landmarks_W))
-    return mav0
+    def frame(self, t_cam_s: float, *images: np.ndarray) -> None:
+        """One image per camera (uint8, of the calibration size), all stamped ``t_cam_s`` (camera clock)."""
+        if len(images) != len(self._calibs):
+            raise ValueError(
+                f"write_euroc: frame {self.frames} carries {len(images)} image(s) "
+                f"for {len(self._calibs)} camera(s)"
+            )
+        t_ns = int(self._stamps(np.array([t_cam_s]), "camera")[0])
+        for k, (image, calib, csv) in enumerate(zip(images, self._calibs, self._cams, strict=True)):
+            cam = calib.camera
+            image = np.asarray(image)
+            if image.dtype != np.uint8 or image.shape != (cam.height, cam.width):
+                raise ValueError(
+                    f"write_euroc: frame {self.frames}{' of cam1' if k else ''} must be uint8 of shape "
+                    f"({cam.height}, {cam.width}), got {image.dtype} {image.shape}"
+                )
+            path = self.mav0 / f"cam{k}" / "data" / f"{t_ns}.png"
+            if not cv2.imwrite(str(path), image):
+                raise ValueError(f"write_euroc: could not write {path}")
+            csv.write(f"{t_ns},{path.name}\n")
+        self.frames += 1
+
+    def finish(self, imu_noise: ImuNoise, imu_rate_hz: float, landmarks_W: np.ndarray | None = None) -> Path:
+        """Write the ``sensor.yaml`` files and the landmarks, close the files; returns ``mav0``."""
+        self.close()
+        _write_imu_yaml(self.mav0 / "imu0" / "sensor.yaml", imu_noise, imu_rate_hz)
+        for k, calib in enumerate(self._calibs):
+            _write_camera_yaml(self.mav0 / f"cam{k}" / "sensor.yaml", calib, self._exposure_s)
+        if self._gt is not None:
+            (self.mav0 / "state_groundtruth_estimate0" / "sensor.yaml").write_text(
+                "%YAML:1.0\nsensor_type: visual-inertial\n"
+                "comment: vio-testbed simulation ground truth (exact).\n"
+            )
+        if landmarks_W is not None:
+            landmarks_W = np.asarray(landmarks_W, dtype=float)
+            if landmarks_W.ndim != 2 or landmarks_W.shape[1] != 3:
+                raise ValueError(f"write_euroc: landmarks_W must be (L, 3), got {landmarks_W.shape}")
+            lm_dir = self.mav0 / "sim_landmarks0"
+            lm_dir.mkdir(parents=True, exist_ok=True)
+            with (lm_dir / "data.csv").open("w", newline="") as handle:
+                handle.write(LANDMARK_HEADER + "\n")
+                handle.writelines(f"{i},{_fmt(p)}\n" for i, p in enumerate(np.asarray(landmarks_W, float)))
+        return self.mav0
+
+    def close(self) -> None:
+        """Close the CSV files (idempotent)."""
+        for handle in (self._imu, *self._cams, self._gt):
+            if handle is not None:
+                handle.close()
+
+    def __enter__(self) -> EurocStreamWriter:
+        """The writer."""
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        """Close the files."""
+        self.close()

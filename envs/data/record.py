@@ -25,8 +25,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.data.euroc_stream import EurocStreamWriter
-from viotb.envs.data.euroc_writer import write_true_calibration
+from viotb.envs.data.euroc_writer import EurocStreamWriter, write_true_calibration
 from viotb.envs.scenarios.failures import failure_record_scenario
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
