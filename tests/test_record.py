@@ -135,13 +135,15 @@ def test_motion_blur_costs_klt_tracks_during_a_spin(tmp_path):
     Measured (seed 0) during the 3 rad/s part (2.5-4 s): 180 tracked features sharp, 91 (min 63) blurred;
     feature updates 476 -> 245.
     """
-    from viotb.envs.data.evaluate import EvalOptions, run_estimator
+    from viotb.envs.data.evaluate import EvalOptions, run_monitored
 
     tracked = {}
     for name in ("fast-rotation", "fast-rotation-blur"):
         ds = read_euroc(record_scenario(name, tmp_path / name, seed=0, seconds=5.0)["out"])
-        _, _, health = run_estimator(ds, EvalOptions())
-        spin = [h["tracked_features"] for h in health if 2.5 < h["t_s"] < 4.0]
+        run = run_monitored(ds, EvalOptions())
+        spin = [
+            h.tracked_features for t, h in zip(run.frame_t_imu_s, run.health, strict=True) if 2.5 < t < 4.0
+        ]
         tracked[name] = float(np.mean(spin))
     assert tracked["fast-rotation-blur"] < 0.7 * tracked["fast-rotation"], tracked
 

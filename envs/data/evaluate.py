@@ -35,7 +35,7 @@ from viotb.vio.types import StateEstimate, TrajectoryArrays
 
 ProgressFn = Callable[[float, float], None]
 
-__all__ = ["NULL_REASONS", "EvalOptions", "evaluate_dataset", "run_estimator", "run_monitored"]
+__all__ = ["NULL_REASONS", "EvalOptions", "evaluate_dataset", "run_monitored"]
 
 
 def _monitor(ds: EurocDataset, opts: EvalOptions, filter_sigma_px: float) -> HealthMonitor | None:
@@ -103,35 +103,6 @@ def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | No
         progress=progress,
         n_frames=n_frames,
     )
-
-
-def run_estimator(
-    ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | None = None
-) -> tuple[list[StateEstimate], list[float], list[dict]]:
-    """Replay a dataset through an estimator (:func:`run_monitored`).
-
-    Returns:
-        Estimates at each processed frame (after initialization, before any divergence), per-frame wall time
-        (ms), and per-frame health records (dicts with t_s, tracked_features, updated_features,
-        chi2_rejections, diverged, reason, conditions).
-    """
-    run = run_monitored(ds, opts, progress)
-    health = [
-        {
-            "t_s": float(t),
-            "tracked_features": h.tracked_features,
-            "updated_features": h.updated_features,
-            "chi2_rejections": h.chi2_rejections,
-            "diverged": h.diverged,
-            "reason": h.reason,
-            "conditions": list(h.conditions),
-        }
-        for t, h in zip(run.frame_t_imu_s, run.health, strict=True)
-    ]
-    estimates = [
-        e for e, h in zip(run.estimates, run.health, strict=True) if e is not None and not h.diverged
-    ]
-    return estimates, run.ms_per_frame, health
 
 
 def estimates_to_trajectory(estimates: list[StateEstimate]) -> TrajectoryArrays:

@@ -65,7 +65,7 @@ def run_loop_closure(
     Args:
         ds: The dataset (images and calibration).
         estimates: The estimator's output, one per processed frame (IMU-clock times).
-        health: Per-frame health records of :func:`viotb.envs.data.evaluate.run_estimator`.
+        health: Per-frame records (``t_s``, ``tracked_features``) of the replay (``evaluate_dataset``).
         opts: Loop settings.
     """
     closer = LoopCloser(opts.params)
