@@ -33,6 +33,7 @@ from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
 from viotb.envs.sim.imu_model import ImuModel, imu_preset
 from viotb.models.constants import HEADSET_CAMERAS, VEHICLE_BODIES
+from viotb.vio.display_pose import DisplayPoseFilter, DisplayPoseParams
 from viotb.vio.factory import make_estimator
 from viotb.vio.headset_metrics import (
     HeadsetMetricParams,
@@ -66,6 +67,7 @@ class HeadsetOptions:
         gyro_noise_inflation: Factor on the gyro noise density the estimator is told (the sensor model's
             is unchanged); see :func:`estimator_imu_noise`.
         window: Window-optimizer settings (None: defaults).
+        display: Display pose filter (:mod:`viotb.vio.display_pose`); None renders with the estimator's pose.
     """
 
     estimator: str = "msckf"
@@ -79,6 +81,7 @@ class HeadsetOptions:
     msckf: MsckfParams | None = None
     window: WindowParams | None = None
     gyro_noise_inflation: float = 10.0
+    display: DisplayPoseParams | None = field(default_factory=DisplayPoseParams)
 
 
 # The MSCKF's default keyframe rule (a clone every 6th frame unless the view moved 3 px) suits a drone; on a
@@ -119,6 +122,9 @@ class HeadsetRun:
         p_est: Estimated positions in W (m), shape (N, 3).
         R_true: True orientations at ``t_s``, shape (N, 3, 3).
         p_true: True positions (m), shape (N, 3).
+        R_disp: Display orientations (the estimator's, corrections smoothed; see
+            :mod:`viotb.vio.display_pose`), shape (N, 3, 3); the estimator's own when ``display`` is None.
+        p_disp: Display positions (m), shape (N, 3).
         speed_true_rad_s: True head angular speed at ``t_s`` (rad/s), shape (N,).
         t_pred_s: Times the predictions are for, ``t_s + latency`` (s), shape (M,), M <= N.
         R_pred: Predicted orientations, shape (M, 3, 3).
@@ -141,6 +147,8 @@ class HeadsetRun:
     p_est: np.ndarray
     R_true: np.ndarray
     p_true: np.ndarray
+    R_disp: np.ndarray
+    p_disp: np.ndarray
     speed_true_rad_s: np.ndarray
     t_pred_s: np.ndarray
     R_pred: np.ndarray
@@ -219,7 +227,7 @@ def run_headset(
     t_imu = np.arange(n_imu) / imu_params.rate_hz
     truth = trajectory.sample_many(t_imu)
     imu_model = ImuModel(imu_params, np.random.default_rng(imu_seq))
-    imu, _, _ = imu_model.measure_series_with_biases(t_imu, truth.omega_B, truth.specific_force_B)
+    imu, bias_g, bias_a = imu_model.measure_series_with_biases(t_imu, truth.omega_B, truth.specific_force_B)
 
     # Cameras.
     sim = Simulation(scenario.vehicle, scenario.scene)
@@ -278,9 +286,10 @@ def run_headset(
         **stereo,
     )
     predictor = DisplayPosePredictor(replace(opts.prediction, latency_s=opts.latency_s))
+    display = DisplayPoseFilter(opts.display) if opts.display is not None else None
 
     g_W = gravity_W()
-    rows_t, rows_R, rows_p, pred_R, pred_p = [], [], [], [], []
+    rows_t, rows_R, rows_p, pred_R, pred_p, disp_R, disp_p = [], [], [], [], [], [], []
     nees, ms, frame_t, tracked, images = [], [], [], [], []
     anchor: tuple[np.ndarray, np.ndarray] | None = None
     failure = ""
@@ -293,7 +302,17 @@ def run_headset(
                 frame = make_frame(int(kept[f]))
                 if opts.estimator == "ground-truth":
                     s = trajectory.sample(float(schedule.t_exposure_imu_s[kept[f]]))
-                    est.feed_truth(StateEstimate(t_s=s.t_s, R_WB=s.R_WB, p_WB=s.p_WB, v_WB=s.v_WB))
+                    j = min(int(np.searchsorted(t_imu, s.t_s)), n_imu - 1)  # the oracle knows the biases too
+                    est.feed_truth(
+                        StateEstimate(
+                            t_s=s.t_s,
+                            R_WB=s.R_WB,
+                            p_WB=s.p_WB,
+                            v_WB=s.v_WB,
+                            gyro_bias_rad_s=bias_g[j],
+                            accel_bias_m_s2=bias_a[j],
+                        )
+                    )
                 t0 = time.perf_counter()
                 est.feed_camera(frame)
                 ms.append((time.perf_counter() - t0) * 1e3)
@@ -320,10 +339,17 @@ def run_headset(
             omega = np.asarray(e.omega_B_rad_s, dtype=float)
             predictor.add_gyro(t_k, omega)
             a_W = R_WB @ (np.asarray(sample.accel_B_m_s2) - e.accel_bias_m_s2) + g_W
-            pred = predictor.predict(MotionState(t_k, R_WB, p_WB, v_WB, omega, a_W))
+            R_d, p_d, v_d = (
+                display.update(t_k, R_WB, p_WB, v_WB, omega, a_W)
+                if display is not None
+                else (R_WB, p_WB, v_WB)
+            )
+            pred = predictor.predict(MotionState(t_k, R_d, p_d, v_d, omega, a_W))
             rows_t.append(t_k)
             rows_R.append(R_WB)
             rows_p.append(p_WB)
+            disp_R.append(R_d)
+            disp_p.append(p_d)
             pred_R.append(pred.R_WB)
             pred_p.append(pred.p_WB)
             if new_frame:
@@ -352,6 +378,8 @@ def run_headset(
         p_est=np.asarray(rows_p).reshape(-1, 3),
         R_true=truth.R_WB[idx],
         p_true=truth.p_WB[idx],
+        R_disp=np.asarray(disp_R).reshape(-1, 3, 3),
+        p_disp=np.asarray(disp_p).reshape(-1, 3),
         speed_true_rad_s=np.linalg.norm(truth.omega_B[idx], axis=1) if len(idx) else np.zeros(0),
         t_pred_s=t_pred[:m],
         R_pred=np.asarray(pred_R).reshape(-1, 3, 3)[:m],
@@ -371,17 +399,22 @@ def run_headset(
 def prediction_relative_to_truth(run: HeadsetRun) -> tuple[np.ndarray, np.ndarray]:
     """Predictions carried onto the truth: the predicted motion over the latency, started from the true pose.
 
-    ``R = R_true(t) R_est(t)^T R_pred``, ``p = p_pred - (p_est(t) - p_true(t))``: the estimate's error at
-    ``t`` (world lock, counted by ``world_lock_ate_mm``) is taken out, so that what is left is the error of
-    the prediction itself (wrong velocity, angular rate or acceleration, and the motion model), which is what
-    ``pred_err_*`` report; ``pred_err_abs_*`` compare the raw predictions with the truth.
+    ``R = R_true(t) R_disp(t)^T R_pred``, ``p = p_pred - (p_disp(t) - p_true(t))`` (predictions start from
+    the display pose): the display pose's error at ``t`` (world lock, counted by ``world_lock_ate_mm``) is
+    taken out, so that what is left is the error of the prediction itself (wrong velocity, angular rate or
+    acceleration, and the motion model), which is what ``pred_err_*`` report; ``pred_err_abs_*`` compare the
+    raw predictions with the truth.
 
     Returns:
         ``(R (M, 3, 3), p (M, 3))`` for the M predictions of ``run``.
     """
     m = len(run.t_pred_s)
-    R_fix = run.R_true[:m] @ np.swapaxes(run.R_est[:m], -1, -2)
-    return R_fix @ run.R_pred, run.p_pred - (run.p_est[:m] - run.p_true[:m])
+    R_fix = run.R_true[:m] @ np.swapaxes(run.R_disp[:m], -1, -2)
+    return R_fix @ run.R_pred, run.p_pred - (run.p_disp[:m] - run.p_true[:m])
+
+
+ESTIMATOR_KEYS = ("jitter_pos_mm", "jitter_rot_deg", "world_lock_ate_mm", "max_err_mm")
+"""Metrics also reported (prefixed ``estimator_``) for the estimator's own pose, before the display filter."""
 
 
 def _finite_or_none(value: float | None, key: str, notes: dict[str, str], why: str) -> float | None:
@@ -432,15 +465,18 @@ def headset_result(run: HeadsetRun, params: HeadsetMetricParams | None = None) -
         )
         result["pred_err_abs_pos_mm_p95"] = absolute.pos_mm
         result["pred_err_abs_rot_deg_p95"] = absolute.rot_deg
-        hm = headset_metrics(run.t_s, run.R_est, run.p_est, run.R_true, run.p_true, pred, params).to_dict()
+        hm = headset_metrics(run.t_s, run.R_disp, run.p_disp, run.R_true, run.p_true, pred, params).to_dict()
         notes.update(hm.pop("notes"))
         for key in keys:
             result[key] = _finite_or_none(hm[key], key, notes, "not finite")
+        raw = headset_metrics(run.t_s, run.R_est, run.p_est, run.R_true, run.p_true, None, params).to_dict()
+        for key in ESTIMATOR_KEYS:
+            result[f"estimator_{key}"] = _finite_or_none(raw[key], f"estimator_{key}", notes, "not finite")
         result["pred_fast_samples"] = pred.n_fast
         for key in ("pred_err_abs_pos_mm_p95", "pred_err_abs_rot_deg_p95"):
             result[key] = _finite_or_none(result[key], key, notes, notes.get("pred_err_pos_mm_p95", "none"))
     else:
-        for key in keys:
+        for key in keys + tuple(f"estimator_{k}" for k in ESTIMATOR_KEYS):
             result[key] = None
             notes[key] = "fewer than 10 poses (the estimator did not initialize)"
     ms = run.ms_per_frame

@@ -49,6 +49,11 @@ def headset(
     out: Path = typer.Option(
         ..., "--out", help="Output folder: TUM files, metrics.json, plots, headset.rrd."
     ),
+    no_display_filter: bool = typer.Option(
+        False,
+        "--no-display-filter",
+        help="Render with the estimator's pose itself (metrics then equal the estimator_* ones).",
+    ),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
@@ -70,6 +75,7 @@ def headset(
             seconds=seconds,
             seed=seed,
             frontend=frontend,
+            **({"display": None} if no_display_filter else {}),
         )
         with atomic_out_dir(out, overwrite) as tmp_dir, progress(f"headset {scenario}", not quiet) as report:
             run = run_headset(scenario, opts, report)
