@@ -264,7 +264,8 @@ def test_headset_still_stereo_msckf_updates_from_the_start():
 
     With a clone every 6th frame the window took 2.2 s to fill: 45 mm of drift, then a 70 mm jump.
     """
-    from viotb.envs.run.headset import HeadsetOptions, headset_result, run_headset
+    from viotb.envs.run.headset import HeadsetOptions, run_headset
+    from viotb.envs.run.headset_report import headset_result
 
     opts = HeadsetOptions(estimator="msckf", cameras=2, frontend="sim", seconds=4.0)
     result = headset_result(run_headset("headset-still", opts))
@@ -279,7 +280,8 @@ def test_headset_still_stereo_msckf_updates_from_the_start():
 @pytest.mark.slow
 def test_headset_still_stereo_meets_the_jitter_target():
     """Issue #12's target, seated still for 10 s, stereo MSCKF: display jitter <= 0.2 mm and <= 0.01 deg."""
-    from viotb.envs.run.headset import HeadsetOptions, headset_result, run_headset
+    from viotb.envs.run.headset import HeadsetOptions, run_headset
+    from viotb.envs.run.headset_report import headset_result
 
     opts = HeadsetOptions(estimator="msckf", cameras=2, frontend="sim", seconds=10.0)
     result = headset_result(run_headset("headset-still", opts))

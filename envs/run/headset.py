@@ -29,6 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from viotb.envs.run.loop_glue import FlightLoopClosure, LoopOptions, require_images
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.sim.camera_timing import frame_schedule
 from viotb.envs.sim.imu_model import ImuModel, imu_preset
@@ -36,10 +37,7 @@ from viotb.models.constants import HEADSET_CAMERAS, VEHICLE_BODIES
 from viotb.vio.display_pose import DisplayPoseFilter, DisplayPoseParams
 from viotb.vio.factory import make_estimator
 from viotb.vio.headset_metrics import (
-    HeadsetMetricParams,
-    headset_metrics,
     interpolate_poses,
-    prediction_errors,
 )
 from viotb.vio.keyframing import KeyframeParams
 from viotb.vio.msckf_params import MsckfParams
@@ -68,6 +66,9 @@ class HeadsetOptions:
             is unchanged); see :func:`estimator_imu_noise`.
         window: Window-optimizer settings (None: defaults).
         display: Display pose filter (:mod:`viotb.vio.display_pose`); None renders with the estimator's pose.
+        loop: Loop closure beside the estimator (``klt`` only; :class:`FlightLoopClosure`): the pose at IMU
+            rate is the estimate with the closer's correction in force (a session started with
+            ``loop.map_in`` continues in the saved room's frame once it recognizes it). None: off.
     """
 
     estimator: str = "msckf"
@@ -82,6 +83,7 @@ class HeadsetOptions:
     window: WindowParams | None = None
     gyro_noise_inflation: float = 10.0
     display: DisplayPoseParams | None = field(default_factory=DisplayPoseParams)
+    loop: LoopOptions | None = None
 
 
 # The MSCKF's default keyframe rule (a clone every 6th frame unless the view moved 3 px) suits a drone; on a
@@ -138,6 +140,9 @@ class HeadsetRun:
         wall_s: Wall time of the whole run (s).
         images: A few (t_s, image) samples of cam0 for the recording (every 10th frame).
         failure: Why the run stopped early ("" when it did not).
+        loop: The loop closer's JSON keys (:meth:`FlightLoopClosure.finish`) and its ``loop_closures.csv``
+            rows under ``loop_closure_rows``; empty without loop closure.
+        closures: The accepted closures (for ``loop_closures.csv``).
     """
 
     scenario: str
@@ -162,6 +167,8 @@ class HeadsetRun:
     wall_s: float
     images: list[tuple[float, np.ndarray]] = field(default_factory=list)
     failure: str = ""
+    loop: dict = field(default_factory=dict)
+    closures: list = field(default_factory=list)
 
 
 def _rotz(yaw: float) -> np.ndarray:
@@ -194,6 +201,8 @@ def _check(scenario, opts: HeadsetOptions) -> None:
         )
     if opts.frontend not in ("klt", "sim"):
         raise ValueError(f"unknown front end {opts.frontend!r}; allowed: klt, sim")
+    if opts.loop is not None:
+        require_images(opts.frontend)
     if not (np.isfinite(opts.latency_s) and 0.0 <= opts.latency_s <= 0.2):
         raise ValueError(f"latency must be in [0, 200] ms, got {opts.latency_s * 1e3} ms")
     if opts.seconds is not None and not (np.isfinite(opts.seconds) and opts.seconds > 0.0):
@@ -287,6 +296,8 @@ def run_headset(
     )
     predictor = DisplayPosePredictor(replace(opts.prediction, latency_s=opts.latency_s))
     display = DisplayPoseFilter(opts.display) if opts.display is not None else None
+    lc = None if opts.loop is None else FlightLoopClosure(opts.loop, rig.calibs[0], opts.frontend)
+    last_image: np.ndarray | None = None
 
     g_W = gravity_W()
     rows_t, rows_R, rows_p, pred_R, pred_p, disp_R, disp_p = [], [], [], [], [], [], []
@@ -318,6 +329,7 @@ def run_headset(
                 ms.append((time.perf_counter() - t0) * 1e3)
                 frame_t.append(float(schedule.t_exposure_imu_s[kept[f]]))
                 tracked.append(est.health().tracked_features)
+                last_image = frame.image
                 if frame.image is not None and f % 10 == 0:
                     images.append((frame_t[-1], frame.image))
                 f += 1
@@ -330,6 +342,11 @@ def run_headset(
                 failure = f"estimator diverged: {est.health().reason}"
                 break
             e = est.estimate()
+            if lc is not None and new_frame:
+                true_k = StateEstimate(t_s=t_k, R_WB=truth.R_WB[k], p_WB=truth.p_WB[k], v_WB=truth.v_WB[k])
+                lc.on_frame(t_k, last_image, e, tracked[-1], true_k)
+            if lc is not None:
+                e = lc.correct(t_k, e)
             if e is None:
                 continue
             if anchor is None:
@@ -393,104 +410,6 @@ def run_headset(
         wall_s=time.perf_counter() - wall0,
         images=images,
         failure=failure,
+        loop=lc.finish() if lc is not None else {},
+        closures=list(lc.closer.run_closures) if lc is not None else [],
     )
-
-
-def prediction_relative_to_truth(run: HeadsetRun) -> tuple[np.ndarray, np.ndarray]:
-    """Predictions carried onto the truth: the predicted motion over the latency, started from the true pose.
-
-    ``R = R_true(t) R_disp(t)^T R_pred``, ``p = p_pred - (p_disp(t) - p_true(t))`` (predictions start from
-    the display pose): the display pose's error at ``t`` (world lock, counted by ``world_lock_ate_mm``) is
-    taken out, so that what is left is the error of the prediction itself (wrong velocity, angular rate or
-    acceleration, and the motion model), which is what ``pred_err_*`` report; ``pred_err_abs_*`` compare the
-    raw predictions with the truth.
-
-    Returns:
-        ``(R (M, 3, 3), p (M, 3))`` for the M predictions of ``run``.
-    """
-    m = len(run.t_pred_s)
-    R_fix = run.R_true[:m] @ np.swapaxes(run.R_disp[:m], -1, -2)
-    return R_fix @ run.R_pred, run.p_pred - (run.p_disp[:m] - run.p_true[:m])
-
-
-ESTIMATOR_KEYS = ("jitter_pos_mm", "jitter_rot_deg", "world_lock_ate_mm", "max_err_mm")
-"""Metrics also reported (prefixed ``estimator_``) for the estimator's own pose, before the display filter."""
-
-
-def _finite_or_none(value: float | None, key: str, notes: dict[str, str], why: str) -> float | None:
-    if value is None or not np.isfinite(value):
-        notes.setdefault(key, why)
-        return None
-    return float(value)
-
-
-def headset_result(run: HeadsetRun, params: HeadsetMetricParams | None = None) -> dict:
-    """The JSON result of a run: DESIGN.md's ``viotb headset`` keys plus context (strict JSON, no NaN)."""
-    o = run.options
-    result: dict = {
-        "scenario": run.scenario,
-        "estimator": o.estimator,
-        "frontend": o.frontend,
-        "cameras": o.cameras,
-        "latency_ms": 1e3 * o.latency_s,
-        "seed": o.seed,
-        "frames": int(len(run.ms_per_frame)),
-        "poses": int(len(run.t_s)),
-        "diverged": bool(run.failure),
-        "reason": run.failure,
-        "path_length_m": float(np.sum(np.linalg.norm(np.diff(run.p_true, axis=0), axis=1)))
-        if len(run.t_s)
-        else 0.0,
-        "realtime_factor": float((run.t_s[-1] - run.t_s[0]) / run.wall_s) if len(run.t_s) > 1 else 0.0,
-    }
-    notes: dict[str, str] = {}
-    keys = (
-        "jitter_pos_mm",
-        "jitter_rot_deg",
-        "world_lock_ate_mm",
-        "max_err_mm",
-        "pred_err_pos_mm_p95",
-        "pred_err_rot_deg_p95",
-        "pose_rate_hz",
-        "drift_pct",
-    )
-    if len(run.t_s) >= 10:
-        m = len(run.t_pred_s)
-        R_pc, p_pc = prediction_relative_to_truth(run)
-        pred = prediction_errors(
-            R_pc, p_pc, run.R_true_pred, run.p_true_pred, run.speed_true_rad_s[:m], params
-        )
-        absolute = prediction_errors(
-            run.R_pred, run.p_pred, run.R_true_pred, run.p_true_pred, run.speed_true_rad_s[:m], params
-        )
-        result["pred_err_abs_pos_mm_p95"] = absolute.pos_mm
-        result["pred_err_abs_rot_deg_p95"] = absolute.rot_deg
-        hm = headset_metrics(run.t_s, run.R_disp, run.p_disp, run.R_true, run.p_true, pred, params).to_dict()
-        notes.update(hm.pop("notes"))
-        for key in keys:
-            result[key] = _finite_or_none(hm[key], key, notes, "not finite")
-        raw = headset_metrics(run.t_s, run.R_est, run.p_est, run.R_true, run.p_true, None, params).to_dict()
-        for key in ESTIMATOR_KEYS:
-            result[f"estimator_{key}"] = _finite_or_none(raw[key], f"estimator_{key}", notes, "not finite")
-        result["pred_fast_samples"] = pred.n_fast
-        for key in ("pred_err_abs_pos_mm_p95", "pred_err_abs_rot_deg_p95"):
-            result[key] = _finite_or_none(result[key], key, notes, notes.get("pred_err_pos_mm_p95", "none"))
-    else:
-        for key in keys + tuple(f"estimator_{k}" for k in ESTIMATOR_KEYS):
-            result[key] = None
-            notes[key] = "fewer than 10 poses (the estimator did not initialize)"
-    ms = run.ms_per_frame
-    why_ms = "no frame processed"
-    result["ms_per_frame_median"] = _finite_or_none(
-        float(np.median(ms)) if len(ms) else None, "ms_per_frame_median", notes, why_ms
-    )
-    result["ms_per_frame_p99"] = _finite_or_none(
-        float(np.percentile(ms, 99)) if len(ms) else None, "ms_per_frame_p99", notes, why_ms
-    )
-    nees = run.nees_pos
-    result["nees_pos_mean"] = _finite_or_none(
-        float(np.mean(nees)) if len(nees) else None, "nees_pos_mean", notes, "no covariance (or no frame)"
-    )
-    result["mean_tracked_features"] = float(np.mean(run.tracked)) if len(run.tracked) else 0.0
-    result["notes"] = notes
-    return result

@@ -54,6 +54,11 @@ def headset(
         "--no-display-filter",
         help="Render with the estimator's pose itself (metrics then equal the estimator_* ones).",
     ),
+    loop_closure: bool = typer.Option(
+        False, "--loop-closure", help="Loop closure beside the estimator (needs klt); loop_closures.csv."
+    ),
+    map_in: Path | None = typer.Option(None, "--map-in", help="Start in this saved map's frame."),
+    map_out: Path | None = typer.Option(None, "--map-out", help="Save the room's map here at the end."),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
@@ -63,7 +68,9 @@ def headset(
     Exit status: 0 done; 2 bad input (the message names it); 3 the estimator diverged.
     """
     check_out(out, overwrite)
-    from viotb.envs.run.headset import HeadsetOptions, headset_result, run_headset
+    from viotb.envs.run.headset import HeadsetOptions, run_headset
+    from viotb.envs.run.headset_report import headset_result
+    from viotb.envs.run.loop_glue import loop_options
     from viotb.envs.tools.headset_viz import write_headset_outputs
     from viotb.envs.tools.outdir import atomic_out_dir
 
@@ -75,6 +82,7 @@ def headset(
             seconds=seconds,
             seed=seed,
             frontend=frontend,
+            loop=loop_options(loop_closure, map_in, map_out),
             **({"display": None} if no_display_filter else {}),
         )
         with atomic_out_dir(out, overwrite) as tmp_dir, progress(f"headset {scenario}", not quiet) as report:

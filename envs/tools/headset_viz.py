@@ -6,7 +6,9 @@ from pathlib import Path
 
 import numpy as np
 from viotb.envs.data.tum import write_tum
-from viotb.envs.run.headset import HeadsetRun, prediction_relative_to_truth
+from viotb.envs.run.headset import HeadsetRun
+from viotb.envs.run.headset_report import prediction_relative_to_truth
+from viotb.envs.run.loop_glue import write_loop_closures_csv
 from viotb.envs.tools.cli_common import write_json
 from viotb.vio.headset_metrics import highpass, position_errors_W, rotation_errors_W
 from viotb.vio.lie import rotmat_to_quat_wxyz
@@ -24,7 +26,7 @@ def write_headset_outputs(run: HeadsetRun, result: dict, out_dir: Path) -> list[
     ``estimate_tum.txt`` (the estimator's pose at IMU rate), ``display_tum.txt`` (the display pose: the
     estimate with its corrections smoothed, what the metrics measure), ``predicted_tum.txt`` (stamped with
     the time each prediction is for), ``groundtruth_tum.txt`` (truth at the pose times), ``metrics.json``, the
-    plots and ``headset.rrd``.
+    plots and ``headset.rrd``; with loop closure, ``loop_closures.csv``.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -34,6 +36,8 @@ def write_headset_outputs(run: HeadsetRun, result: dict, out_dir: Path) -> list[
         write_tum(out_dir / "predicted_tum.txt", _traj(run.t_pred_s, run.R_pred, run.p_pred)),
         write_tum(out_dir / "groundtruth_tum.txt", _traj(run.t_s, run.R_true, run.p_true)),
     ]
+    if run.loop:
+        paths.append(write_loop_closures_csv(out_dir / "loop_closures.csv", run.closures))
     if len(run.t_s) >= 10:
         paths += save_headset_plots(run, out_dir)
     paths.append(write_headset_rrd(run, out_dir / "headset.rrd"))
