@@ -1,0 +1,122 @@
+"""Loop closures against the truth over many seeds: is any accepted closure wrong? (issue #14's benchmark).
+
+For each seed: record ``SCENARIO`` (rendered, open loop; ``--scene`` swaps the room, e.g. the repetitive
+``pillars``), evaluate it with the MSCKF on KLT with loop closure, and compare every accepted closure's
+relative pose (``loop_closures.csv``: the query body in the match body frame) with the truth's
+``T_WB(t_match)^-1 T_WB(t_query)`` from the recording's ground truth. Prints one JSON object: per seed the
+closure count, the worst translation (m) and rotation (deg) error, ATE odometry / loop-closed / online, and
+the totals (``false_closures``: closures outside ``--max-err-m`` / ``--max-err-deg``).
+
+Usage::
+
+    python benchmarks/loop_closure_truth.py long-loop --seeds 0-19 --seconds 60 --out /tmp/lc_bench
+    python benchmarks/loop_closure_truth.py long-loop --scene pillars --seeds 0-4 --out /tmp/lc_pillars
+    python benchmarks/loop_closure_truth.py line --seeds 0-4 --seconds 8 --out /tmp/lc_line   # no revisit
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+from viotb.envs.data.euroc import read_euroc
+from viotb.envs.data.eval_options import EvalOptions
+from viotb.envs.data.evaluate import evaluate_dataset
+from viotb.envs.data.record import record_scenario
+from viotb.envs.run.loop_glue import LoopOptions
+from viotb.envs.scenarios.registry import get_scenario, register
+from viotb.vio.headset_metrics import interpolate_poses
+from viotb.vio.lie import log_so3, quat_wxyz_to_rotmat
+
+
+def _seeds(text: str) -> list[int]:
+    if "-" in text:
+        a, b = text.split("-")
+        return list(range(int(a), int(b) + 1))
+    return [int(s) for s in text.split(",")]
+
+
+def closure_errors(dataset_dir: Path, csv_path: Path) -> list[tuple[float, float]]:
+    """``(translation error m, rotation error deg)`` of every closure in ``csv_path`` against the truth."""
+    gt = read_euroc(dataset_dir).groundtruth
+    if gt is None:
+        raise ValueError(f"{dataset_dir}: no ground truth to check closures against")
+    R_gt = np.array([quat_wxyz_to_rotmat(q) for q in gt.quat_wxyz_WB])
+    out = []
+    with Path(csv_path).open() as f:
+        for row in csv.DictReader(f):
+            t = np.array([float(row["t_query_s"]), float(row["t_match_s"])])
+            R, p = interpolate_poses(t, gt.t_s, R_gt, gt.p_WB)
+            R_mq_true = R[1].T @ R[0]
+            p_mq_true = R[1].T @ (p[0] - p[1])
+            q_xyzw = [float(row[k]) for k in ("qx", "qy", "qz", "qw")]
+            R_mq = quat_wxyz_to_rotmat(np.array([q_xyzw[3], *q_xyzw[:3]]))
+            p_mq = np.array([float(row[k]) for k in "xyz"])
+            rot_deg = float(np.degrees(np.linalg.norm(log_so3(R_mq_true.T @ R_mq))))
+            out.append((float(np.linalg.norm(p_mq - p_mq_true)), rot_deg))
+    return out
+
+
+def main() -> None:
+    """Run the seeds and print the JSON summary."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scenario")
+    ap.add_argument("--seeds", default="0-19")
+    ap.add_argument("--seconds", type=float, default=None)
+    ap.add_argument("--scene", default=None, help="Swap the scenario's scene (e.g. pillars).")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--max-err-m", type=float, default=0.05)
+    ap.add_argument("--max-err-deg", type=float, default=1.0)
+    ap.add_argument("--keep", action="store_true", help="Keep the recordings.")
+    args = ap.parse_args()
+    name = args.scenario
+    if args.scene is not None:
+        base = get_scenario(name)
+        name = f"{name}-{args.scene}"
+        register(dataclasses.replace(base, name=name, scene=args.scene), replace=True)
+    rows = []
+    for seed in _seeds(args.seeds):
+        data, ev = args.out / f"{name}-{seed}" / "data", args.out / f"{name}-{seed}" / "eval"
+        record_scenario(name, data, seed=seed, seconds=args.seconds, overwrite=True)
+        res = evaluate_dataset(data, ev, EvalOptions(loop=LoopOptions()), overwrite=True)
+        errs = closure_errors(data, ev / "loop_closures.csv")
+        worst_m = max((e[0] for e in errs), default=0.0)
+        worst_deg = max((e[1] for e in errs), default=0.0)
+        bad = sum(e[0] > args.max_err_m or e[1] > args.max_err_deg for e in errs)
+        rows.append(
+            {
+                "seed": seed,
+                "closures": len(errs),
+                "false_closures": bad,
+                "worst_m": worst_m,
+                "worst_deg": worst_deg,
+                "ate_posyaw_odometry_m": res.get("ate_posyaw_odometry_m"),
+                "ate_posyaw_m": res.get("ate_posyaw_m"),
+                "ate_posyaw_online_m": res.get("ate_posyaw_online_m"),
+            }
+        )
+        print(json.dumps(rows[-1]), flush=True)
+        if not args.keep:
+            shutil.rmtree(data)
+    ratios = [r["ate_posyaw_m"] / r["ate_posyaw_odometry_m"] for r in rows if r["ate_posyaw_odometry_m"]]
+    summary = {
+        "scenario": name,
+        "seeds": len(rows),
+        "closures": sum(r["closures"] for r in rows),
+        "false_closures": sum(r["false_closures"] for r in rows),
+        "worst_m": max(r["worst_m"] for r in rows),
+        "worst_deg": max(r["worst_deg"] for r in rows),
+        "ate_ratio_median": float(np.median(ratios)) if ratios else None,
+        "ate_ratio_max": float(np.max(ratios)) if ratios else None,
+        "runs": rows,
+    }
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
