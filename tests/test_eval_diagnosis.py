@@ -20,7 +20,7 @@ from viotb.envs.data.euroc_writer import TRUE_CAMERA_YAML
 from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 from viotb.envs.data.record import record_scenario
 from viotb.envs.tools.cli import app
-from viotb.envs.tools.eval_report import strict_json
+from viotb.envs.tools.jsonout import plain_json
 
 MICRO = Path("/work/shared/data/euroc_v1_01_micro")
 SECONDS = 10.0
@@ -84,7 +84,7 @@ def test_extrinsic_recording_klt_with_report(recordings: dict[str, Path], tmp_pa
     for key in ("error_plot", "health_plot", "json"):
         assert Path(cal["report"][key]).is_file()
     on_disk = json.loads((out / "report.json").read_text())
-    assert on_disk == json.loads(json.dumps(strict_json(cal)))
+    assert on_disk == json.loads(json.dumps(plain_json(cal)))
 
 
 def test_nominal_recording_raises_nothing(recordings: dict[str, Path], tmp_path: Path) -> None:
@@ -128,7 +128,7 @@ def test_condition_intervals_and_strict_json() -> None:
     spans = condition_intervals(trace)
     assert spans["a"] == [(t[1], t[2]), (t[5], t[5])]
     assert spans["b"] == [(t[2], t[3])]
-    assert strict_json({"x": float("nan"), "y": [np.float64(1.5), float("inf")]}) == {
+    assert plain_json({"x": float("nan"), "y": [np.float64(1.5), float("inf")]}) == {
         "x": None,
         "y": [1.5, None],
     }

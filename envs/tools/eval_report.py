@@ -16,32 +16,17 @@ Files written into the eval's output folder:
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 from viotb.envs.data.diagnosis import EvalTrace, condition_intervals
 from viotb.envs.data.euroc import EurocDataset, load_image
+from viotb.envs.tools.jsonout import plain_json
 from viotb.vio.health import HealthParams
 from viotb.vio.metrics import align_umeyama
 
 _COLORS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan", "tab:gray", "gold")
-
-
-def strict_json(obj: object) -> object:
-    """``obj`` with every non-finite float replaced by None and numpy scalars/arrays made plain."""
-    if isinstance(obj, dict):
-        return {str(k): strict_json(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [strict_json(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return strict_json(obj.tolist())
-    if isinstance(obj, np.generic):
-        return strict_json(obj.item())
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 def trace_errors(trace: EvalTrace, ds: EurocDataset) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -235,7 +220,7 @@ def write_eval_report(
         "json": str(final / "report.json"),
         "rerun": str(final / rrd.name) if rerun else None,
     }
-    text = json.dumps(strict_json({**result, "report": paths}), indent=2, allow_nan=False)
+    text = json.dumps(plain_json({**result, "report": paths}), indent=2, allow_nan=False)
     tmp = out / "report.json.tmp"
     tmp.write_text(text + "\n")
     tmp.replace(out / "report.json")

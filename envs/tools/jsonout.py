@@ -36,6 +36,11 @@ def _plain(value: object, path: str, found: list[str]) -> object:
     return value
 
 
+def plain_json(obj: object) -> object:
+    """``obj`` with numpy scalars and arrays made plain Python and every non-finite float made None."""
+    return _plain(obj, "", [])
+
+
 def strict_result(result: Mapping, reasons: Mapping[str, str] | None = None) -> dict:
     """``result`` made strict-JSON-safe, with a ``notes`` entry for every value that became ``null``.
 
