@@ -37,6 +37,7 @@ from viotb.vio.frontend import FrontEnd, Tracks, make_frontend
 from viotb.vio.frontend_stereo import make_stereo_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.keyframing import KeyframeSelector
+from viotb.vio.lie import exp_so3
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
 from viotb.vio.marginalization import LinearPrior, schur_complement
 from viotb.vio.propagator import ImuBuffer, select_imu_readings
@@ -192,7 +193,7 @@ class WindowEstimator:
                 f"than the newest keyframe ({self.keyframes[-1].t_s:.9f} s)"
             )
         still = self._update_stillness(tracks)
-        if self._diverged_reason or not self.keyframe_rule.is_keyframe(tracks):
+        if self._diverged_reason or not self._is_keyframe(tracks):
             self.keyframe_rule.skip()
             self._health = self._make_health(frame.t_s, tracks)
             return
@@ -266,6 +267,20 @@ class WindowEstimator:
         if init is not None:
             self.initialize(init)
         self._health = health
+
+    def _is_keyframe(self, tracks: Tracks) -> bool:
+        """The keyframe rule, given the camera rotation since the newest keyframe when it compensates it.
+
+        The rotation is the newest keyframe's attitude against the IMU-propagated one (:meth:`estimate`,
+        extrapolated with the last bias-corrected rate from the newest IMU sample to the frame time).
+        """
+        rule = self.keyframe_rule
+        if not rule.params.rotation_compensated:
+            return rule.is_keyframe(tracks)
+        est = self.estimate()
+        R_WB = est.R_WB @ exp_so3(est.omega_B_rad_s * (tracks.t_imu_s - est.t_s))
+        R_CrCn = self._R_BC.T @ self.keyframes[-1].x.R_WB.T @ R_WB @ self._R_BC
+        return rule.is_keyframe(tracks, R_CrCn, self._focal_px)
 
     def _update_stillness(self, tracks: Tracks) -> bool:
         """Whether the interval since the previous frame was still (:mod:`viotb.vio.zero_velocity`).

@@ -59,7 +59,9 @@ class WindowParams:
 
     window_size: int = 10
     keyframing: KeyframeParams = field(
-        default_factory=lambda: KeyframeParams(every_n_frames=3, min_parallax_px=10.0)
+        default_factory=lambda: KeyframeParams(
+            every_n_frames=3, min_parallax_px=10.0, rotation_compensated=True
+        )
     )
     min_track_length: int = 3
     max_landmarks: int = 150

@@ -18,7 +18,8 @@ from viotb.vio.marginalization import LinearPrior
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
-from viotb.vio.window_factors import NX, boxminus, imu_factor, reprojection, retract
+from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, stack_values
+from viotb.vio.window_factors import NX, reprojection, retract
 
 
 @dataclass(frozen=True)
@@ -118,7 +119,34 @@ def pose_index(n_kf: int) -> np.ndarray:
     return (np.arange(n_kf)[:, None] * NX + np.arange(6)[None, :]).ravel()
 
 
-def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeights) -> LinearSystem:
+@dataclass(frozen=True)
+class PreparedFactors:
+    """What :func:`linearize` needs of the factors that does not change with the values (one per solve).
+
+    Attributes:
+        imu: The IMU factors stacked, with their square-root information.
+        prior_R0: Orientations of the prior's linearization points, shape (P, 3, 3).
+        prior_rest0: Their ``[p, v, b_g, b_a]``, shape (P, 12).
+    """
+
+    imu: ImuFactorStack
+    prior_R0: np.ndarray
+    prior_rest0: np.ndarray
+
+
+def prepare(f: Factors, w8: FactorWeights) -> PreparedFactors:
+    """Stack the IMU factors and the prior's linearization points of ``f`` (:class:`PreparedFactors`)."""
+    R0, rest0 = (np.zeros((0, 3, 3)), np.zeros((0, 12))) if f.prior is None else stack_values(f.prior.x0)
+    return PreparedFactors(ImuFactorStack.build(f.imu, w8.noise), R0, rest0)
+
+
+def linearize(
+    xs: list[ImuValues],
+    pts: np.ndarray,
+    f: Factors,
+    w8: FactorWeights,
+    prep: PreparedFactors | None = None,
+) -> LinearSystem:
     """Whitened Gauss-Newton system at ``(xs, pts)`` (IRLS Huber weights) and its robust cost.
 
     Args:
@@ -126,7 +154,9 @@ def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeight
         pts: Landmarks in W (m), shape (L, 3).
         f: The factors.
         w8: Their noise models and the extrinsics.
+        prep: ``prepare(f, w8)`` when the caller linearizes the same factors repeatedly (None: made here).
     """
+    prep = prep if prep is not None else prepare(f, w8)
     N, L = len(xs), len(pts)
     D = N * NX
     H = np.zeros((D, D))
@@ -134,22 +164,27 @@ def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeight
     cost = 0.0
     prior_cost = 0.0
     n_res = 0
+    R, rest = stack_values(xs)
     # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
-    for k, pre in f.imu:
-        r, J_i, J_j, C = imu_factor(pre, xs[k], xs[k + 1], w8.noise)
-        W = np.linalg.cholesky(np.linalg.inv(C)).T
-        r_w = W @ r
-        J = np.hstack([W @ J_i, W @ J_j])
-        sl = slice(k * NX, (k + 2) * NX)
-        H[sl, sl] += J.T @ J
-        g[sl] += J.T @ r_w
-        cost += 0.5 * float(r_w @ r_w)
-        n_res += NX
+    if len(prep.imu.k):
+        r, J_i, J_j = imu_factors(prep.imu, R, rest)
+        W = prep.imu.sqrt_info
+        r_w = np.einsum("kij,kj->ki", W, r)
+        J = np.concatenate([W @ J_i, W @ J_j], axis=2)
+        JT = np.swapaxes(J, 1, 2)
+        JtJ, Jtr = JT @ J, np.einsum("kij,kj->ki", JT, r_w)
+        for i, k in enumerate(prep.imu.k.tolist()):
+            sl = slice(k * NX, (k + 2) * NX)
+            H[sl, sl] += JtJ[i]
+            g[sl] += Jtr[i]
+        cost += 0.5 * float(np.sum(r_w * r_w))
+        n_res += NX * len(prep.imu.k)
     # b. Linear prior (OKVIS eq. 9): 0.5 dx^T H dx + g^T dx at dx = x [-] x0.
     pr = f.prior
     if pr is not None:
-        idx = np.concatenate([np.arange(NX) + NX * k for k in f.prior_k])
-        dx = np.concatenate([boxminus(xs[k], x0) for k, x0 in zip(f.prior_k, pr.x0, strict=True)])
+        k_pr = np.asarray(f.prior_k, dtype=np.int64)
+        idx = (k_pr[:, None] * NX + np.arange(NX)[None, :]).ravel()
+        dx = boxminus_batch(R[k_pr], rest[k_pr], prep.prior_R0, prep.prior_rest0).ravel()
         H[np.ix_(idx, idx)] += pr.H
         g[idx] += pr.H @ dx + pr.g
         prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
@@ -184,7 +219,9 @@ def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeight
     if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
         cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1))
     for obs, R_BC, p_BC, sigma_norm in cams:
-        c, n = _add_reprojection(H, g, H_ll, g_l, E, max_err, xs, pts, obs, R_BC, p_BC, sigma_norm, w8)
+        c, n = _add_reprojection(
+            H, g, H_ll, g_l, E, max_err, (R, rest[:, :3]), pts, obs, R_BC, p_BC, sigma_norm, w8
+        )
         cost += c
         n_res += n
     return LinearSystem(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err, cost - prior_cost)
@@ -197,7 +234,7 @@ def _add_reprojection(
     g_l: np.ndarray,
     E: np.ndarray,
     max_err: np.ndarray,
-    xs: list[ImuValues],
+    poses: tuple[np.ndarray, np.ndarray],
     pts: np.ndarray,
     obs: tuple[np.ndarray, np.ndarray, np.ndarray],
     R_BC: np.ndarray,
@@ -214,9 +251,10 @@ def _add_reprojection(
         g_l: Landmark gradients (L, 3).
         E: Pose-landmark blocks (L, N, 6, 3).
         max_err: Largest whitened error per landmark (L,), raised in place.
-        xs: Keyframe values (N).
+        poses: Keyframe ``(R_WB (N, 3, 3), p_WB (N, 3))``.
         pts: Landmarks in W (m), shape (L, 3).
-        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` in this camera.
+        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` in this camera (one observation per
+            keyframe and landmark).
         R_BC: This camera's rotation to the body, shape (3, 3).
         p_BC: Its origin in B (m), shape (3,).
         sigma_norm: Its measurement sigma in normalized coordinates.
@@ -225,13 +263,11 @@ def _add_reprojection(
     Returns:
         ``(robust cost, residual count)``.
     """
-    N = len(xs)
+    N = len(poses[0])
     kf_i, lm_i, xy = obs
     if not len(kf_i):
         return 0.0, 0
-    R = np.stack([x.R_WB for x in xs])[kf_i]
-    P = np.stack([x.p_WB for x in xs])[kf_i]
-    z, _, J_pose, J_pt = reprojection(R, P, pts[lm_i], R_BC, p_BC)
+    z, _, J_pose, J_pt = reprojection(poses[0][kf_i], poses[1][kf_i], pts[lm_i], R_BC, p_BC)
     s = 1.0 / sigma_norm
     r = (z - xy) * s
     J_pose, J_pt = J_pose * s, J_pt * s
@@ -242,20 +278,23 @@ def _add_reprojection(
     np.maximum.at(max_err, lm_i, e)
     Jw = J_pose * w[:, None, None]
     JwT = np.swapaxes(Jw, 1, 2)
-    Hpp = JwT @ J_pose
-    gp = (JwT @ r[:, :, None])[:, :, 0]
-    Hpp_k = np.zeros((N, 6, 6))
-    gp_k = np.zeros((N, 6))
-    np.add.at(Hpp_k, kf_i, Hpp)
-    np.add.at(gp_k, kf_i, gp)
+    # Sums over the observations of each keyframe and each landmark as products with one-hot matrices
+    # (faster than ``np.add.at`` at these sizes).
+    M = len(kf_i)
+    hot_k = np.zeros((N, M))
+    hot_k[kf_i, np.arange(M)] = 1.0
+    Hpp_k = (hot_k @ (JwT @ J_pose).reshape(M, 36)).reshape(N, 6, 6)
+    gp_k = hot_k @ (JwT @ r[:, :, None])[:, :, 0]
     pidx = pose_index(N).reshape(N, 6)
     for k in range(N):
         H[np.ix_(pidx[k], pidx[k])] += Hpp_k[k]
         g[pidx[k]] += gp_k[k]
     JptT = np.swapaxes(J_pt * w[:, None, None], 1, 2)
-    np.add.at(H_ll, lm_i, JptT @ J_pt)
-    np.add.at(g_l, lm_i, (JptT @ r[:, :, None])[:, :, 0])
-    np.add.at(E, (lm_i, kf_i), JwT @ J_pt)
+    hot_l = np.zeros((len(H_ll), M))
+    hot_l[lm_i, np.arange(M)] = 1.0
+    H_ll += (hot_l @ (JptT @ J_pt).reshape(M, 9)).reshape(-1, 3, 3)
+    g_l += hot_l @ (JptT @ r[:, :, None])[:, :, 0]
+    E[lm_i, kf_i] += JwT @ J_pt
     return cost, 2 * len(kf_i)
 
 
@@ -304,7 +343,8 @@ def levenberg_marquardt(
     Returns:
         ``(xs, pts, system)``: the optimized values and the system linearized there.
     """
-    sys = linearize(xs, pts, f, w8)
+    prep = prepare(f, w8)
+    sys = linearize(xs, pts, f, w8, prep)
     lam = initial_damping
     pidx = pose_index(len(xs))
     for _ in range(max_iterations):
@@ -314,7 +354,7 @@ def levenberg_marquardt(
         dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
         xs_new = [retract(x, dx[k * NX : (k + 1) * NX]) for k, x in enumerate(xs)]
         pts_new = pts + dl
-        sys_new = linearize(xs_new, pts_new, f, w8)
+        sys_new = linearize(xs_new, pts_new, f, w8, prep)
         if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
             small = sys.cost - sys_new.cost < 1e-6 * sys.cost
             xs, pts, sys = xs_new, pts_new, sys_new
