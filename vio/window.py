@@ -37,13 +37,13 @@ from viotb.vio.frontend import FrontEnd, Tracks, make_frontend
 from viotb.vio.frontend_stereo import make_stereo_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.keyframing import KeyframeSelector
-from viotb.vio.lie import exp_so3
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
 from viotb.vio.marginalization import LinearPrior, schur_complement
 from viotb.vio.propagator import ImuBuffer, select_imu_readings
 from viotb.vio.state import POS, ImuValues, read_init_record
 from viotb.vio.triangulation import triangulate
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
+from viotb.vio.window_batch import exp_so3_batch
 from viotb.vio.window_factors import (
     NX,
     boxminus,
@@ -271,16 +271,19 @@ class WindowEstimator:
     def _is_keyframe(self, tracks: Tracks) -> bool:
         """The keyframe rule, given the camera rotation since the newest keyframe when it compensates it.
 
-        The rotation is the newest keyframe's attitude against the IMU-propagated one (:meth:`estimate`,
-        extrapolated with the last bias-corrected rate from the newest IMU sample to the frame time).
+        The rotation is the gyro, less the newest keyframe's bias, integrated from that keyframe to the frame
+        (midpoint readings, the preintegration's rotation without its covariance and Jacobians).
         """
         rule = self.keyframe_rule
         if not rule.params.rotation_compensated:
             return rule.is_keyframe(tracks)
-        est = self.estimate()
-        R_WB = est.R_WB @ exp_so3(est.omega_B_rad_s * (tracks.t_imu_s - est.t_s))
-        R_CrCn = self._R_BC.T @ self.keyframes[-1].x.R_WB.T @ R_WB @ self._R_BC
-        return rule.is_keyframe(tracks, R_CrCn, self._focal_px)
+        kf = self.keyframes[-1]
+        t, gyro, _ = self._readings(kf.t_s, tracks.t_imu_s)
+        steps = exp_so3_batch(0.5 * (gyro[1:] + gyro[:-1] - 2.0 * kf.x.gyro_bias_rad_s) * np.diff(t)[:, None])
+        R_BrBn = np.eye(3)
+        for step in steps:
+            R_BrBn = R_BrBn @ step
+        return rule.is_keyframe(tracks, self._R_BC.T @ R_BrBn @ self._R_BC, self._focal_px)
 
     def _update_stillness(self, tracks: Tracks) -> bool:
         """Whether the interval since the previous frame was still (:mod:`viotb.vio.zero_velocity`).
@@ -379,7 +382,7 @@ class WindowEstimator:
         no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
         factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
         xs, pts, sys = levenberg_marquardt(
-            xs, pts, factors, self._weights, p.max_iterations, p.initial_damping
+            xs, pts, factors, self._weights, p.max_iterations, p.initial_damping, p.relative_tolerance
         )
         for kf, x in zip(self.keyframes, xs, strict=True):
             kf.x = x

@@ -27,6 +27,8 @@ class WindowParams:
             optimization are removed.
         max_iterations: Levenberg-Marquardt iterations per keyframe.
         initial_damping: Initial LM damping, relative to the diagonal.
+        relative_tolerance: The iterations stop once a kept step lowers the cost by less than this fraction
+            of it.
         repropagate_gyro_bias_rad_s: Re-integrate a preintegration when the gyro bias moved this far (rad/s)
             from its linearization point (first-order correction otherwise, Forster eq. 44).
         repropagate_accel_bias_m_s2: Same for the accelerometer bias (m/s^2).
@@ -70,6 +72,7 @@ class WindowParams:
     outlier_threshold: float = 8.0
     max_iterations: int = 6
     initial_damping: float = 1e-4
+    relative_tolerance: float = 1e-6
     repropagate_gyro_bias_rad_s: float = 0.01
     repropagate_accel_bias_m_s2: float = 0.2
     zero_velocity: ZeroVelocityParams = field(

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.marginalization import LinearPrior
 from viotb.vio.preintegration import ImuPreintegration
@@ -127,17 +128,30 @@ class PreparedFactors:
         imu: The IMU factors stacked, with their square-root information.
         prior_R0: Orientations of the prior's linearization points, shape (P, 3, 3).
         prior_rest0: Their ``[p, v, b_g, b_a]``, shape (P, 12).
+        sums: Per camera (``obs``, then ``obs_right``), the sparse 0/1 matrices that sum the M observations'
+            terms per keyframe (N, M) and per landmark (L, M).
     """
 
     imu: ImuFactorStack
     prior_R0: np.ndarray
     prior_rest0: np.ndarray
+    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix]]
 
 
-def prepare(f: Factors, w8: FactorWeights) -> PreparedFactors:
-    """Stack the IMU factors and the prior's linearization points of ``f`` (:class:`PreparedFactors`)."""
+def prepare(f: Factors, w8: FactorWeights, n_kf: int, n_lm: int) -> PreparedFactors:
+    """What :func:`linearize` reuses for ``f`` over ``n_kf`` keyframes and ``n_lm`` landmarks."""
     R0, rest0 = (np.zeros((0, 3, 3)), np.zeros((0, 12))) if f.prior is None else stack_values(f.prior.x0)
-    return PreparedFactors(ImuFactorStack.build(f.imu, w8.noise), R0, rest0)
+    sums = []
+    for obs in (f.obs, f.obs_right):
+        kf_i, lm_i = (np.zeros(0, dtype=np.int64),) * 2 if obs is None else obs[:2]
+        M, ones, col = len(kf_i), np.ones(len(kf_i)), np.arange(len(kf_i))
+        sums.append(
+            (
+                sparse.csr_matrix((ones, (kf_i, col)), shape=(n_kf, M)),
+                sparse.csr_matrix((ones, (lm_i, col)), shape=(n_lm, M)),
+            )
+        )
+    return PreparedFactors(ImuFactorStack.build(f.imu, w8.noise), R0, rest0, sums)
 
 
 def linearize(
@@ -156,8 +170,8 @@ def linearize(
         w8: Their noise models and the extrinsics.
         prep: ``prepare(f, w8)`` when the caller linearizes the same factors repeatedly (None: made here).
     """
-    prep = prep if prep is not None else prepare(f, w8)
     N, L = len(xs), len(pts)
+    prep = prep if prep is not None else prepare(f, w8, N, L)
     D = N * NX
     H = np.zeros((D, D))
     g = np.zeros(D)
@@ -215,12 +229,12 @@ def linearize(
     g_l = np.zeros((L, 3))
     E = np.zeros((L, N, 6, 3))
     max_err = np.zeros(L)
-    cams = [(f.obs, w8.R_BC, w8.p_BC, w8.sigma_norm)]
+    cams = [(f.obs, w8.R_BC, w8.p_BC, w8.sigma_norm, prep.sums[0])]
     if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
-        cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1))
-    for obs, R_BC, p_BC, sigma_norm in cams:
+        cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1, prep.sums[1]))
+    for obs, R_BC, p_BC, sigma_norm, sums in cams:
         c, n = _add_reprojection(
-            H, g, H_ll, g_l, E, max_err, (R, rest[:, :3]), pts, obs, R_BC, p_BC, sigma_norm, w8
+            H, g, H_ll, g_l, E, max_err, (R, rest[:, :3]), pts, obs, R_BC, p_BC, sigma_norm, w8, sums
         )
         cost += c
         n_res += n
@@ -241,6 +255,7 @@ def _add_reprojection(
     p_BC: np.ndarray,
     sigma_norm: float,
     w8: FactorWeights,
+    sums: tuple[sparse.csr_matrix, sparse.csr_matrix],
 ) -> tuple[float, int]:
     """Add one camera's Huber-weighted reprojection factors to the system (in place).
 
@@ -259,6 +274,7 @@ def _add_reprojection(
         p_BC: Its origin in B (m), shape (3,).
         sigma_norm: Its measurement sigma in normalized coordinates.
         w8: The Huber threshold.
+        sums: Sparse 0/1 matrices summing the observations per keyframe (N, M) and landmark (L, M).
 
     Returns:
         ``(robust cost, residual count)``.
@@ -278,22 +294,17 @@ def _add_reprojection(
     np.maximum.at(max_err, lm_i, e)
     Jw = J_pose * w[:, None, None]
     JwT = np.swapaxes(Jw, 1, 2)
-    # Sums over the observations of each keyframe and each landmark as products with one-hot matrices
-    # (faster than ``np.add.at`` at these sizes).
+    # Sums over the observations of each keyframe and each landmark (sparse products: faster than
+    # ``np.add.at``); the pose blocks sit on the diagonal of H seen as (N, NX, N, NX).
     M = len(kf_i)
-    hot_k = np.zeros((N, M))
-    hot_k[kf_i, np.arange(M)] = 1.0
-    Hpp_k = (hot_k @ (JwT @ J_pose).reshape(M, 36)).reshape(N, 6, 6)
-    gp_k = hot_k @ (JwT @ r[:, :, None])[:, :, 0]
-    pidx = pose_index(N).reshape(N, 6)
-    for k in range(N):
-        H[np.ix_(pidx[k], pidx[k])] += Hpp_k[k]
-        g[pidx[k]] += gp_k[k]
+    sum_k, sum_l = sums
+    k_all = np.arange(N)
+    H4 = H.reshape(N, NX, N, NX)
+    H4[k_all, :6, k_all, :6] += (sum_k @ (JwT @ J_pose).reshape(M, 36)).reshape(N, 6, 6)
+    g.reshape(N, NX)[:, :6] += sum_k @ (JwT @ r[:, :, None])[:, :, 0]
     JptT = np.swapaxes(J_pt * w[:, None, None], 1, 2)
-    hot_l = np.zeros((len(H_ll), M))
-    hot_l[lm_i, np.arange(M)] = 1.0
-    H_ll += (hot_l @ (JptT @ J_pt).reshape(M, 9)).reshape(-1, 3, 3)
-    g_l += hot_l @ (JptT @ r[:, :, None])[:, :, 0]
+    H_ll += (sum_l @ (JptT @ J_pt).reshape(M, 9)).reshape(-1, 3, 3)
+    g_l += sum_l @ (JptT @ r[:, :, None])[:, :, 0]
     E[lm_i, kf_i] += JwT @ J_pt
     return cost, 2 * len(kf_i)
 
@@ -326,11 +337,12 @@ def levenberg_marquardt(
     w8: FactorWeights,
     max_iterations: int,
     initial_damping: float,
+    relative_tolerance: float = 1e-6,
 ) -> tuple[list[ImuValues], np.ndarray, LinearSystem]:
     """Levenberg-Marquardt on the manifold, landmarks eliminated by the Schur complement in each solve.
 
     A step is kept when it does not raise the cost (damping / 10, at least 1e-8), else the damping grows
-    10x; iterations stop early when a kept step lowers the cost by less than 1e-6 of it.
+    10x; iterations stop early when a kept step lowers the cost by less than ``relative_tolerance`` of it.
 
     Args:
         xs: Initial keyframe values (N).
@@ -339,11 +351,12 @@ def levenberg_marquardt(
         w8: Their noise models and the extrinsics.
         max_iterations: Most iterations.
         initial_damping: Initial damping, relative to the diagonal.
+        relative_tolerance: Convergence: a kept step that lowers the cost by less than this fraction.
 
     Returns:
         ``(xs, pts, system)``: the optimized values and the system linearized there.
     """
-    prep = prepare(f, w8)
+    prep = prepare(f, w8, len(xs), len(pts))
     sys = linearize(xs, pts, f, w8, prep)
     lam = initial_damping
     pidx = pose_index(len(xs))
@@ -356,7 +369,7 @@ def levenberg_marquardt(
         pts_new = pts + dl
         sys_new = linearize(xs_new, pts_new, f, w8, prep)
         if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
-            small = sys.cost - sys_new.cost < 1e-6 * sys.cost
+            small = sys.cost - sys_new.cost < relative_tolerance * sys.cost
             xs, pts, sys = xs_new, pts_new, sys_new
             lam = max(lam / 10.0, 1e-8)
             if small:
