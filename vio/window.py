@@ -43,7 +43,7 @@ from viotb.vio.propagator import ImuBuffer, select_imu_readings
 from viotb.vio.state import POS, ImuValues, read_init_record
 from viotb.vio.triangulation import triangulate
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
-from viotb.vio.window_batch import exp_so3_batch
+from viotb.vio.window_batch import integrate_gyro
 from viotb.vio.window_factors import (
     NX,
     boxminus,
@@ -62,13 +62,13 @@ from viotb.vio.window_map import (
     observations,
     track_matrix,
 )
+from viotb.vio.window_nis import InnovationTest, WindowMarginals, innovation_test
 from viotb.vio.window_params import WindowParams
 from viotb.vio.window_solver import (
     Factors,
     FactorWeights,
     levenberg_marquardt,
     linearize,
-    newest_keyframe_covariance,
     schur_reduce,
     stereo_weights,
 )
@@ -147,6 +147,8 @@ class WindowEstimator:
             *stereo_weights(calib_right, p.pixel_sigma_px),
         )
         self._last_cost_per_res = 0.0
+        self._marginals: WindowMarginals | None = None
+        self._innovation = InnovationTest()
         self._health = HealthStatus(t_s=0.0, initialized=False)
         self._diverged_reason = ""
         self._blowups = 0
@@ -169,6 +171,7 @@ class WindowEstimator:
         self.keyframes, self.links, self.landmarks = [kf], [], {}
         self.prior = LinearPrior(np.linalg.inv(cov), np.zeros(NX), [kf.key], [vals.copy()])
         self._cov_newest = cov
+        self._marginals = None
         self.keyframe_rule.forget_reference()
         self._version += 1
         self._health = HealthStatus(t_s=t_s, initialized=True)
@@ -204,7 +207,7 @@ class WindowEstimator:
             self._diverged_reason = f"numerical failure in the optimization: {exc}"
         self._check_divergence()
         self._version += 1
-        self._health = self._make_health(frame.t_s, tracks)
+        self._health = self._make_health(frame.t_s, tracks, self._innovation)
 
     def estimate(self) -> StateEstimate | None:
         """Newest keyframe propagated with the IMU to the newest sample.
@@ -279,10 +282,7 @@ class WindowEstimator:
             return rule.is_keyframe(tracks)
         kf = self.keyframes[-1]
         t, gyro, _ = self._readings(kf.t_s, tracks.t_imu_s)
-        steps = exp_so3_batch(0.5 * (gyro[1:] + gyro[:-1] - 2.0 * kf.x.gyro_bias_rad_s) * np.diff(t)[:, None])
-        R_BrBn = np.eye(3)
-        for step in steps:
-            R_BrBn = R_BrBn @ step
+        R_BrBn = integrate_gyro(t, gyro, kf.x.gyro_bias_rad_s)
         return rule.is_keyframe(tracks, self._R_BC.T @ R_BrBn @ self._R_BC, self._focal_px)
 
     def _update_stillness(self, tracks: Tracks) -> bool:
@@ -323,6 +323,12 @@ class WindowEstimator:
         pre = preintegrate(*readings, last.x, self.noise)
         x = predict(pre, last.x)
         obs = {int(i): xy for i, xy in zip(tracks.ids.tolist(), tracks.xy_norm, strict=True)}
+        self._innovation = InnovationTest()
+        if self._marginals is not None:
+            cam = (self._R_BC, self._p_BC, self._sigma_norm, p.triangulation.min_depth_m)
+            self._innovation = innovation_test(
+                self._marginals, pre, last.x, x, self.noise, obs, self.landmarks, cam
+            )
         obs1 = {}
         if self.calib_right is not None:
             obs1 = {int(i): xy for i, xy in zip(tracks.ids_right.tolist(), tracks.xy_norm_right, strict=True)}
@@ -388,8 +394,10 @@ class WindowEstimator:
             kf.x = x
         for j, fid in enumerate(lm_ids):
             self.landmarks[fid] = pts[j]
-        # 5. Covariance of the newest keyframe: inverse of its marginal information.
-        self._cov_newest = newest_keyframe_covariance(sys)
+        # 5. Covariances: the newest keyframe's (the inverse of its marginal information) and those the next
+        #    keyframe's innovation test needs (:mod:`viotb.vio.window_nis`).
+        self._marginals = WindowMarginals.from_system(sys, lm_ids)
+        self._cov_newest = self._marginals.newest_covariance
         self._last_cost_per_res = sys.meas_cost / max(sys.n_res, 1)
         self._used = len(lm_ids)
         # 6. Outliers and landmarks behind a camera leave the window with their observations.
@@ -474,5 +482,17 @@ class WindowEstimator:
                 f"outliers or inconsistent (limit {p.runaway_reject_ratio:.0%})"
             )
 
-    def _make_health(self, t_s: float, tracks: Tracks) -> HealthStatus:
-        return frame_health(t_s, tracks, self._diverged_reason, updated_features=self._used)
+    def _make_health(
+        self, t_s: float, tracks: Tracks, innovation: InnovationTest | None = None
+    ) -> HealthStatus:
+        """Health of a frame; a keyframe's has the NIS of its observations (:mod:`viotb.vio.window_nis`)."""
+        inn = innovation if innovation is not None else InnovationTest()
+        return frame_health(
+            t_s,
+            tracks,
+            self._diverged_reason,
+            updated_features=self._used,
+            chi2_rejections=inn.rejected,
+            nis_per_dof=inn.nis_per_dof,
+            nis_per_dof_all=inn.nis_per_dof_all,
+        )

@@ -87,6 +87,15 @@ def right_jacobian_inv_batch(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + 0.5 * k + c2[:, None, None] * k2
 
 
+def integrate_gyro(t_s: np.ndarray, gyro: np.ndarray, gyro_bias_rad_s: np.ndarray) -> np.ndarray:
+    """Rotation ``R_B0Bn`` (3, 3) over readings ``t (n,) s, gyro (n, 3) rad/s`` less a bias (midpoints)."""
+    steps = exp_so3_batch((0.5 * (gyro[1:] + gyro[:-1]) - gyro_bias_rad_s) * np.diff(t_s)[:, None])
+    R = np.eye(3)
+    for step in steps:
+        R = R @ step
+    return R
+
+
 def stack_values(xs: list[ImuValues]) -> tuple[np.ndarray, np.ndarray]:
     """``(R_WB (N, 3, 3), [p_WB, v_WB, b_g, b_a] (N, 12))`` of N keyframe values."""
     R = np.stack([x.R_WB for x in xs])
