@@ -154,14 +154,13 @@ def _stream(seed: int, seconds: float):
     return synthesize_stream(StreamConfig(motion="figure8", seconds=seconds, landmark_count=600), seed)
 
 
-def _run_window(stream) -> tuple[WindowEstimator, float, dict]:
+def _run_window(stream, params: WindowParams | None = None) -> tuple[WindowEstimator, float, dict]:
     """Window estimator over a stream: (estimator, ATE after a yaw+translation alignment (m), run info)."""
     from viotb.envs.run.replay import monitor_run
     from viotb.vio.metrics import align_umeyama
 
-    est = WindowEstimator(
-        stream.calib_given, stream.noise, WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
-    )
+    prm = params if params is not None else WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
+    est = WindowEstimator(stream.calib_given, stream.noise, prm)
     t0 = time.perf_counter()
     run = monitor_run(est, stream.imu, stream.frames, stream.time_offset_s)
     wall = time.perf_counter() - t0
@@ -356,3 +355,20 @@ def test_window_figure8_multi_seed_against_msckf(tmp_path):
     ates_msckf = df[df["config/estimator"] == "msckf"].sort_values("seed")["ate_m"].to_numpy()
     assert max(ates) < 0.04, ates
     assert np.mean(ates) < np.mean(ates_msckf), (ates, ates_msckf)
+
+
+def test_spin_in_place_does_not_make_every_frame_a_keyframe():
+    """3 s simulated 3 rad/s spin (1.5 s of it still): rotation-compensated parallax (the default) vs raw.
+
+    Measured: 20 keyframe solves of 89 frames against 43 without the compensation; ATE 11.8 vs 12.3 mm.
+    """
+    from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
+    from viotb.vio.keyframing import KeyframeParams
+
+    stream = synthesize_stream(StreamConfig(motion="fast-rotation", seconds=3.0, landmark_count=600), 0)
+    raw = KeyframeParams(every_n_frames=3, min_parallax_px=10.0)
+    est_c, ate_c, _ = _run_window(stream)
+    est_r, ate_r, _ = _run_window(stream, replace(est_c.params, keyframing=raw))
+    assert est_c.params.keyframing.rotation_compensated
+    assert len(est_c.solve_times_s) < 0.6 * len(est_r.solve_times_s)
+    assert ate_c < 1.2 * ate_r and ate_c < 0.02

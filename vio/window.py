@@ -13,9 +13,11 @@ State: a window of keyframes ``x_k = [R_WB, p_WB, v_WB, b_g, b_a]`` and landmark
    also those one keyframe sees in both cameras: their depth comes from the baseline, so scale is
    observable from the first keyframe).
 3. Minimize by Levenberg-Marquardt the IMU factors, the robust reprojection factors (cam1's with cam1's
-   extrinsics on a stereo rig), the zero-velocity
-   factors of still keyframes (:mod:`viotb.vio.zero_velocity`) and the linear prior left by marginalization
-   (OKVIS eq. 9), landmarks eliminated by the Schur complement (:mod:`viotb.vio.window_solver`).
+   extrinsics on a stereo rig), the zero-velocity factors of still keyframes (:mod:`viotb.vio.zero_velocity`)
+   and the linear prior left by marginalization (OKVIS eq. 9), landmarks eliminated by the Schur complement
+   (:mod:`viotb.vio.window_solver`, factors batched in :mod:`viotb.vio.window_batch`). Before that, the
+   IMU-predicted keyframe's observations of existing landmarks give the NIS per dof of its health record
+   (:mod:`viotb.vio.window_nis`; the monitor's time-sync test reads it).
 4. When the window is full, marginalize the oldest keyframe together with every landmark it observed
    (with all their observations) into a new linear prior (:mod:`viotb.vio.marginalization`). Those
    landmarks' later observations start fresh tracks, so no measurement is used twice; the observations in
@@ -43,6 +45,7 @@ from viotb.vio.propagator import ImuBuffer, select_imu_readings
 from viotb.vio.state import POS, ImuValues, read_init_record
 from viotb.vio.triangulation import triangulate
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
+from viotb.vio.window_batch import integrate_gyro
 from viotb.vio.window_factors import (
     NX,
     boxminus,
@@ -61,13 +64,13 @@ from viotb.vio.window_map import (
     observations,
     track_matrix,
 )
+from viotb.vio.window_nis import InnovationTest, WindowMarginals, innovation_test
 from viotb.vio.window_params import WindowParams
 from viotb.vio.window_solver import (
     Factors,
     FactorWeights,
     levenberg_marquardt,
     linearize,
-    newest_keyframe_covariance,
     schur_reduce,
     stereo_weights,
 )
@@ -146,6 +149,8 @@ class WindowEstimator:
             *stereo_weights(calib_right, p.pixel_sigma_px),
         )
         self._last_cost_per_res = 0.0
+        self._marginals: WindowMarginals | None = None
+        self._innovation = InnovationTest()
         self._health = HealthStatus(t_s=0.0, initialized=False)
         self._diverged_reason = ""
         self._blowups = 0
@@ -168,6 +173,7 @@ class WindowEstimator:
         self.keyframes, self.links, self.landmarks = [kf], [], {}
         self.prior = LinearPrior(np.linalg.inv(cov), np.zeros(NX), [kf.key], [vals.copy()])
         self._cov_newest = cov
+        self._marginals = None
         self.keyframe_rule.forget_reference()
         self._version += 1
         self._health = HealthStatus(t_s=t_s, initialized=True)
@@ -192,7 +198,7 @@ class WindowEstimator:
                 f"than the newest keyframe ({self.keyframes[-1].t_s:.9f} s)"
             )
         still = self._update_stillness(tracks)
-        if self._diverged_reason or not self.keyframe_rule.is_keyframe(tracks):
+        if self._diverged_reason or not self._is_keyframe(tracks):
             self.keyframe_rule.skip()
             self._health = self._make_health(frame.t_s, tracks)
             return
@@ -203,7 +209,7 @@ class WindowEstimator:
             self._diverged_reason = f"numerical failure in the optimization: {exc}"
         self._check_divergence()
         self._version += 1
-        self._health = self._make_health(frame.t_s, tracks)
+        self._health = self._make_health(frame.t_s, tracks, self._innovation)
 
     def estimate(self) -> StateEstimate | None:
         """Newest keyframe propagated with the IMU to the newest sample.
@@ -267,6 +273,20 @@ class WindowEstimator:
             self.initialize(init)
         self._health = health
 
+    def _is_keyframe(self, tracks: Tracks) -> bool:
+        """The keyframe rule, given the camera rotation since the newest keyframe when it compensates it.
+
+        The rotation is the gyro, less the newest keyframe's bias, integrated from that keyframe to the frame
+        (midpoint readings, the preintegration's rotation without its covariance and Jacobians).
+        """
+        rule = self.keyframe_rule
+        if not rule.params.rotation_compensated:
+            return rule.is_keyframe(tracks)
+        kf = self.keyframes[-1]
+        t, gyro, _ = self._readings(kf.t_s, tracks.t_imu_s)
+        R_BrBn = integrate_gyro(t, gyro, kf.x.gyro_bias_rad_s)
+        return rule.is_keyframe(tracks, self._R_BC.T @ R_BrBn @ self._R_BC, self._focal_px)
+
     def _update_stillness(self, tracks: Tracks) -> bool:
         """Whether the interval since the previous frame was still (:mod:`viotb.vio.zero_velocity`).
 
@@ -305,6 +325,12 @@ class WindowEstimator:
         pre = preintegrate(*readings, last.x, self.noise)
         x = predict(pre, last.x)
         obs = {int(i): xy for i, xy in zip(tracks.ids.tolist(), tracks.xy_norm, strict=True)}
+        self._innovation = InnovationTest()
+        if self._marginals is not None:
+            cam = (self._R_BC, self._p_BC, self._sigma_norm, p.triangulation.min_depth_m)
+            self._innovation = innovation_test(
+                self._marginals, pre, last.x, x, self.noise, obs, self.landmarks, cam
+            )
         obs1 = {}
         if self.calib_right is not None:
             obs1 = {int(i): xy for i, xy in zip(tracks.ids_right.tolist(), tracks.xy_norm_right, strict=True)}
@@ -364,14 +390,16 @@ class WindowEstimator:
         no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
         factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
         xs, pts, sys = levenberg_marquardt(
-            xs, pts, factors, self._weights, p.max_iterations, p.initial_damping
+            xs, pts, factors, self._weights, p.max_iterations, p.initial_damping, p.relative_tolerance
         )
         for kf, x in zip(self.keyframes, xs, strict=True):
             kf.x = x
         for j, fid in enumerate(lm_ids):
             self.landmarks[fid] = pts[j]
-        # 5. Covariance of the newest keyframe: inverse of its marginal information.
-        self._cov_newest = newest_keyframe_covariance(sys)
+        # 5. Covariances: the newest keyframe's (the inverse of its marginal information) and those the next
+        #    keyframe's innovation test needs (:mod:`viotb.vio.window_nis`).
+        self._marginals = WindowMarginals.from_system(sys, lm_ids)
+        self._cov_newest = self._marginals.newest_covariance
         self._last_cost_per_res = sys.meas_cost / max(sys.n_res, 1)
         self._used = len(lm_ids)
         # 6. Outliers and landmarks behind a camera leave the window with their observations.
@@ -456,5 +484,17 @@ class WindowEstimator:
                 f"outliers or inconsistent (limit {p.runaway_reject_ratio:.0%})"
             )
 
-    def _make_health(self, t_s: float, tracks: Tracks) -> HealthStatus:
-        return frame_health(t_s, tracks, self._diverged_reason, updated_features=self._used)
+    def _make_health(
+        self, t_s: float, tracks: Tracks, innovation: InnovationTest | None = None
+    ) -> HealthStatus:
+        """Health of a frame; a keyframe's has the NIS of its observations (:mod:`viotb.vio.window_nis`)."""
+        inn = innovation if innovation is not None else InnovationTest()
+        return frame_health(
+            t_s,
+            tracks,
+            self._diverged_reason,
+            updated_features=self._used,
+            chi2_rejections=inn.rejected,
+            nis_per_dof=inn.nis_per_dof,
+            nis_per_dof_all=inn.nis_per_dof_all,
+        )

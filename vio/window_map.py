@@ -102,17 +102,28 @@ def track_matrix(keyframes: list[Keyframe], fids: list[int], cam: int = 0) -> tu
 def observations(
     keyframes: list[Keyframe], lm_ids: list[int], cam: int = 0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of landmarks ``lm_ids`` in camera ``cam``."""
-    index = {fid: j for j, fid in enumerate(lm_ids)}
+    """``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of landmarks ``lm_ids`` in camera ``cam``.
+
+    Keyframe by keyframe, each in its observations' insertion order.
+    """
+    lm = np.asarray(lm_ids, dtype=np.int64)
+    order = np.argsort(lm, kind="stable")
+    lm_sorted = lm[order]
     ks, ls, xys = [], [], []
     for k, kf in enumerate(keyframes):
-        for fid, xy in kf.camera_obs(cam).items():
-            j = index.get(fid)
-            if j is not None:
-                ks.append(k)
-                ls.append(j)
-                xys.append(xy)
-    return np.array(ks, dtype=np.int64), np.array(ls, dtype=np.int64), np.array(xys).reshape(-1, 2)
+        kf_obs = kf.camera_obs(cam)
+        if not kf_obs or not len(lm):
+            continue
+        ids = np.fromiter(kf_obs.keys(), dtype=np.int64, count=len(kf_obs))
+        pos = np.minimum(np.searchsorted(lm_sorted, ids), len(lm) - 1)
+        hit = lm_sorted[pos] == ids
+        if np.any(hit):
+            ks.append(np.full(int(np.sum(hit)), k, dtype=np.int64))
+            ls.append(order[pos[hit]])
+            xys.append(np.array(list(kf_obs.values()), dtype=float).reshape(-1, 2)[hit])
+    if not ks:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2))
+    return np.concatenate(ks), np.concatenate(ls), np.concatenate(xys)
 
 
 def drop_landmark(keyframes: list[Keyframe], landmarks: dict[int, np.ndarray], fid: int) -> None:

@@ -13,12 +13,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.marginalization import LinearPrior
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
-from viotb.vio.window_factors import NX, boxminus, imu_factor, reprojection, retract
+from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, stack_values
+from viotb.vio.window_factors import NX, reprojection, retract
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,47 @@ def pose_index(n_kf: int) -> np.ndarray:
     return (np.arange(n_kf)[:, None] * NX + np.arange(6)[None, :]).ravel()
 
 
-def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeights) -> LinearSystem:
+@dataclass(frozen=True)
+class PreparedFactors:
+    """What :func:`linearize` needs of the factors that does not change with the values (one per solve).
+
+    Attributes:
+        imu: The IMU factors stacked, with their square-root information.
+        prior_R0: Orientations of the prior's linearization points, shape (P, 3, 3).
+        prior_rest0: Their ``[p, v, b_g, b_a]``, shape (P, 12).
+        sums: Per camera (``obs``, then ``obs_right``), the sparse 0/1 matrices that sum the M observations'
+            terms per keyframe (N, M) and per landmark (L, M).
+    """
+
+    imu: ImuFactorStack
+    prior_R0: np.ndarray
+    prior_rest0: np.ndarray
+    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix]]
+
+
+def prepare(f: Factors, w8: FactorWeights, n_kf: int, n_lm: int) -> PreparedFactors:
+    """What :func:`linearize` reuses for ``f`` over ``n_kf`` keyframes and ``n_lm`` landmarks."""
+    R0, rest0 = (np.zeros((0, 3, 3)), np.zeros((0, 12))) if f.prior is None else stack_values(f.prior.x0)
+    sums = []
+    for obs in (f.obs, f.obs_right):
+        kf_i, lm_i = (np.zeros(0, dtype=np.int64),) * 2 if obs is None else obs[:2]
+        M, ones, col = len(kf_i), np.ones(len(kf_i)), np.arange(len(kf_i))
+        sums.append(
+            (
+                sparse.csr_matrix((ones, (kf_i, col)), shape=(n_kf, M)),
+                sparse.csr_matrix((ones, (lm_i, col)), shape=(n_lm, M)),
+            )
+        )
+    return PreparedFactors(ImuFactorStack.build(f.imu, w8.noise), R0, rest0, sums)
+
+
+def linearize(
+    xs: list[ImuValues],
+    pts: np.ndarray,
+    f: Factors,
+    w8: FactorWeights,
+    prep: PreparedFactors | None = None,
+) -> LinearSystem:
     """Whitened Gauss-Newton system at ``(xs, pts)`` (IRLS Huber weights) and its robust cost.
 
     Args:
@@ -126,30 +168,37 @@ def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeight
         pts: Landmarks in W (m), shape (L, 3).
         f: The factors.
         w8: Their noise models and the extrinsics.
+        prep: ``prepare(f, w8)`` when the caller linearizes the same factors repeatedly (None: made here).
     """
     N, L = len(xs), len(pts)
+    prep = prep if prep is not None else prepare(f, w8, N, L)
     D = N * NX
     H = np.zeros((D, D))
     g = np.zeros(D)
     cost = 0.0
     prior_cost = 0.0
     n_res = 0
+    R, rest = stack_values(xs)
     # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
-    for k, pre in f.imu:
-        r, J_i, J_j, C = imu_factor(pre, xs[k], xs[k + 1], w8.noise)
-        W = np.linalg.cholesky(np.linalg.inv(C)).T
-        r_w = W @ r
-        J = np.hstack([W @ J_i, W @ J_j])
-        sl = slice(k * NX, (k + 2) * NX)
-        H[sl, sl] += J.T @ J
-        g[sl] += J.T @ r_w
-        cost += 0.5 * float(r_w @ r_w)
-        n_res += NX
+    if len(prep.imu.k):
+        r, J_i, J_j = imu_factors(prep.imu, R, rest)
+        W = prep.imu.sqrt_info
+        r_w = np.einsum("kij,kj->ki", W, r)
+        J = np.concatenate([W @ J_i, W @ J_j], axis=2)
+        JT = np.swapaxes(J, 1, 2)
+        JtJ, Jtr = JT @ J, np.einsum("kij,kj->ki", JT, r_w)
+        for i, k in enumerate(prep.imu.k.tolist()):
+            sl = slice(k * NX, (k + 2) * NX)
+            H[sl, sl] += JtJ[i]
+            g[sl] += Jtr[i]
+        cost += 0.5 * float(np.sum(r_w * r_w))
+        n_res += NX * len(prep.imu.k)
     # b. Linear prior (OKVIS eq. 9): 0.5 dx^T H dx + g^T dx at dx = x [-] x0.
     pr = f.prior
     if pr is not None:
-        idx = np.concatenate([np.arange(NX) + NX * k for k in f.prior_k])
-        dx = np.concatenate([boxminus(xs[k], x0) for k, x0 in zip(f.prior_k, pr.x0, strict=True)])
+        k_pr = np.asarray(f.prior_k, dtype=np.int64)
+        idx = (k_pr[:, None] * NX + np.arange(NX)[None, :]).ravel()
+        dx = boxminus_batch(R[k_pr], rest[k_pr], prep.prior_R0, prep.prior_rest0).ravel()
         H[np.ix_(idx, idx)] += pr.H
         g[idx] += pr.H @ dx + pr.g
         prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
@@ -180,11 +229,13 @@ def linearize(xs: list[ImuValues], pts: np.ndarray, f: Factors, w8: FactorWeight
     g_l = np.zeros((L, 3))
     E = np.zeros((L, N, 6, 3))
     max_err = np.zeros(L)
-    cams = [(f.obs, w8.R_BC, w8.p_BC, w8.sigma_norm)]
+    cams = [(f.obs, w8.R_BC, w8.p_BC, w8.sigma_norm, prep.sums[0])]
     if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
-        cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1))
-    for obs, R_BC, p_BC, sigma_norm in cams:
-        c, n = _add_reprojection(H, g, H_ll, g_l, E, max_err, xs, pts, obs, R_BC, p_BC, sigma_norm, w8)
+        cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1, prep.sums[1]))
+    for obs, R_BC, p_BC, sigma_norm, sums in cams:
+        c, n = _add_reprojection(
+            H, g, H_ll, g_l, E, max_err, (R, rest[:, :3]), pts, obs, R_BC, p_BC, sigma_norm, w8, sums
+        )
         cost += c
         n_res += n
     return LinearSystem(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err, cost - prior_cost)
@@ -197,13 +248,14 @@ def _add_reprojection(
     g_l: np.ndarray,
     E: np.ndarray,
     max_err: np.ndarray,
-    xs: list[ImuValues],
+    poses: tuple[np.ndarray, np.ndarray],
     pts: np.ndarray,
     obs: tuple[np.ndarray, np.ndarray, np.ndarray],
     R_BC: np.ndarray,
     p_BC: np.ndarray,
     sigma_norm: float,
     w8: FactorWeights,
+    sums: tuple[sparse.csr_matrix, sparse.csr_matrix],
 ) -> tuple[float, int]:
     """Add one camera's Huber-weighted reprojection factors to the system (in place).
 
@@ -214,24 +266,24 @@ def _add_reprojection(
         g_l: Landmark gradients (L, 3).
         E: Pose-landmark blocks (L, N, 6, 3).
         max_err: Largest whitened error per landmark (L,), raised in place.
-        xs: Keyframe values (N).
+        poses: Keyframe ``(R_WB (N, 3, 3), p_WB (N, 3))``.
         pts: Landmarks in W (m), shape (L, 3).
-        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` in this camera.
+        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` in this camera (one observation per
+            keyframe and landmark).
         R_BC: This camera's rotation to the body, shape (3, 3).
         p_BC: Its origin in B (m), shape (3,).
         sigma_norm: Its measurement sigma in normalized coordinates.
         w8: The Huber threshold.
+        sums: Sparse 0/1 matrices summing the observations per keyframe (N, M) and landmark (L, M).
 
     Returns:
         ``(robust cost, residual count)``.
     """
-    N = len(xs)
+    N = len(poses[0])
     kf_i, lm_i, xy = obs
     if not len(kf_i):
         return 0.0, 0
-    R = np.stack([x.R_WB for x in xs])[kf_i]
-    P = np.stack([x.p_WB for x in xs])[kf_i]
-    z, _, J_pose, J_pt = reprojection(R, P, pts[lm_i], R_BC, p_BC)
+    z, _, J_pose, J_pt = reprojection(poses[0][kf_i], poses[1][kf_i], pts[lm_i], R_BC, p_BC)
     s = 1.0 / sigma_norm
     r = (z - xy) * s
     J_pose, J_pt = J_pose * s, J_pt * s
@@ -242,20 +294,18 @@ def _add_reprojection(
     np.maximum.at(max_err, lm_i, e)
     Jw = J_pose * w[:, None, None]
     JwT = np.swapaxes(Jw, 1, 2)
-    Hpp = JwT @ J_pose
-    gp = (JwT @ r[:, :, None])[:, :, 0]
-    Hpp_k = np.zeros((N, 6, 6))
-    gp_k = np.zeros((N, 6))
-    np.add.at(Hpp_k, kf_i, Hpp)
-    np.add.at(gp_k, kf_i, gp)
-    pidx = pose_index(N).reshape(N, 6)
-    for k in range(N):
-        H[np.ix_(pidx[k], pidx[k])] += Hpp_k[k]
-        g[pidx[k]] += gp_k[k]
+    # Sums over the observations of each keyframe and each landmark (sparse products: faster than
+    # ``np.add.at``); the pose blocks sit on the diagonal of H seen as (N, NX, N, NX).
+    M = len(kf_i)
+    sum_k, sum_l = sums
+    k_all = np.arange(N)
+    H4 = H.reshape(N, NX, N, NX)
+    H4[k_all, :6, k_all, :6] += (sum_k @ (JwT @ J_pose).reshape(M, 36)).reshape(N, 6, 6)
+    g.reshape(N, NX)[:, :6] += sum_k @ (JwT @ r[:, :, None])[:, :, 0]
     JptT = np.swapaxes(J_pt * w[:, None, None], 1, 2)
-    np.add.at(H_ll, lm_i, JptT @ J_pt)
-    np.add.at(g_l, lm_i, (JptT @ r[:, :, None])[:, :, 0])
-    np.add.at(E, (lm_i, kf_i), JwT @ J_pt)
+    H_ll += (sum_l @ (JptT @ J_pt).reshape(M, 9)).reshape(-1, 3, 3)
+    g_l += sum_l @ (JptT @ r[:, :, None])[:, :, 0]
+    E[lm_i, kf_i] += JwT @ J_pt
     return cost, 2 * len(kf_i)
 
 
@@ -287,11 +337,12 @@ def levenberg_marquardt(
     w8: FactorWeights,
     max_iterations: int,
     initial_damping: float,
+    relative_tolerance: float = 1e-6,
 ) -> tuple[list[ImuValues], np.ndarray, LinearSystem]:
     """Levenberg-Marquardt on the manifold, landmarks eliminated by the Schur complement in each solve.
 
     A step is kept when it does not raise the cost (damping / 10, at least 1e-8), else the damping grows
-    10x; iterations stop early when a kept step lowers the cost by less than 1e-6 of it.
+    10x; iterations stop early when a kept step lowers the cost by less than ``relative_tolerance`` of it.
 
     Args:
         xs: Initial keyframe values (N).
@@ -300,11 +351,13 @@ def levenberg_marquardt(
         w8: Their noise models and the extrinsics.
         max_iterations: Most iterations.
         initial_damping: Initial damping, relative to the diagonal.
+        relative_tolerance: Convergence: a kept step that lowers the cost by less than this fraction.
 
     Returns:
         ``(xs, pts, system)``: the optimized values and the system linearized there.
     """
-    sys = linearize(xs, pts, f, w8)
+    prep = prepare(f, w8, len(xs), len(pts))
+    sys = linearize(xs, pts, f, w8, prep)
     lam = initial_damping
     pidx = pose_index(len(xs))
     for _ in range(max_iterations):
@@ -314,9 +367,9 @@ def levenberg_marquardt(
         dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
         xs_new = [retract(x, dx[k * NX : (k + 1) * NX]) for k, x in enumerate(xs)]
         pts_new = pts + dl
-        sys_new = linearize(xs_new, pts_new, f, w8)
+        sys_new = linearize(xs_new, pts_new, f, w8, prep)
         if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
-            small = sys.cost - sys_new.cost < 1e-6 * sys.cost
+            small = sys.cost - sys_new.cost < relative_tolerance * sys.cost
             xs, pts, sys = xs_new, pts_new, sys_new
             lam = max(lam / 10.0, 1e-8)
             if small:
