@@ -45,7 +45,7 @@ def _monitor(ds: EurocDataset, opts: EvalOptions, filter_sigma_px: float) -> Hea
     if opts.health is not None:
         return HealthMonitor(opts.health)
     expected = diagnosis.expected_nis_per_dof(
-        opts.frontend, filter_sigma_px, opts.sim_pixel_sigma_px, ds.landmarks_W is not None
+        opts.frontend, filter_sigma_px, opts.sim_pixel_sigma_px, ds.landmarks_W is not None, opts.estimator
     )
     return HealthMonitor(HealthParams(nis_per_dof_expected=expected))
 
