@@ -207,16 +207,17 @@ def test_stereo_window_beats_mono_looking_around():
     (Before the window's rotation-compensated keyframing, which makes a keyframe of every 3rd frame of a
     turn in place instead of nearly every frame: 12.5 / 5.7, 5.0 / 3.8, 9.7 / 3.4.)
     """
-    ates = {}
-    for stereo in (False, True):
-        world = LookAroundWorld(np.random.default_rng(7), n_landmarks=600)
-        est = WindowEstimator(
-            world.calib0, ImuNoise(), SIM_WINDOW, calib_right=world.calib1 if stereo else None
-        )
-        ates[stereo] = _ate_m(run_look_around(est, world, seed=3, seconds=3.0, stereo=stereo))
-        assert not est.health().diverged
-    assert ates[True] < 0.85 * ates[False], ates
-    assert ates[True] < 0.01, ates
+    ates: dict[bool, list[float]] = {False: [], True: []}
+    for seed in (3, 5):  # one seed is one draw: the mono error varies 3x between seeds
+        for stereo in (False, True):
+            world = LookAroundWorld(np.random.default_rng(7), n_landmarks=600)
+            est = WindowEstimator(
+                world.calib0, ImuNoise(), SIM_WINDOW, calib_right=world.calib1 if stereo else None
+            )
+            ates[stereo].append(_ate_m(run_look_around(est, world, seed=seed, seconds=3.0, stereo=stereo)))
+            assert not est.health().diverged
+    assert sum(ates[True]) < 0.6 * sum(ates[False]), ates
+    assert max(ates[True]) < 0.01, ates
 
 
 # ------------------------------------------------------------------------------------- rendered images
