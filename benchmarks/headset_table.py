@@ -127,7 +127,9 @@ def main() -> None:
                     "per_seed": per_seed,
                 }
             )
-    print(dumps_strict({"frontend": args.frontend, "estimator": args.estimator, "imu": args.imu, "rows": rows}))
+    print(
+        dumps_strict({"frontend": args.frontend, "estimator": args.estimator, "imu": args.imu, "rows": rows})
+    )
     if args.markdown:
         print(markdown(rows))
 
