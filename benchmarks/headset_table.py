@@ -73,12 +73,18 @@ def markdown(rows: list[dict]) -> str:
     for r in rows:
         m = r["mean"]
         band = r["nees_band"]
+        pred = (
+            "n/a (no turn > 150 deg/s)"
+            if m["pred_err_pos_mm_p95"] is None
+            else f"{m['pred_err_pos_mm_p95']:.2f} mm / {m['pred_err_rot_deg_p95']:.3f} deg"
+        )
+        path_m = _mean([p["path_length_m"] for p in r["per_seed"]]) or 0.0
+        drift = f"{_fmt(m['drift_pct'], 1)} %" if path_m >= 1.0 else f"({1e3 * path_m:.0f} mm path)"
         out.append(
             f"| `{r['scenario']}` | {r['cameras']} "
             f"| {_fmt(m['jitter_pos_mm'], 2)} mm / {_fmt(m['jitter_rot_deg'], 3)} deg "
             f"| {_fmt(m['world_lock_ate_mm'], 1)} / {_fmt(m['max_err_mm'], 1)} mm "
-            f"| {_fmt(m['pred_err_pos_mm_p95'], 2)} mm / {_fmt(m['pred_err_rot_deg_p95'], 3)} deg "
-            f"| {_fmt(m['drift_pct'], 1)} % "
+            f"| {pred} | {drift} "
             f"| {_fmt(m['nees_pos_mean'], 1)} ({band[0]:.1f}-{band[1]:.1f}) "
             f"| {_fmt(m['ms_per_frame_median'], 0)} / {_fmt(m['ms_per_frame_p99'], 0)} |"
         )
