@@ -64,6 +64,35 @@ def test_consumer_imu_preset_at_1khz():
     assert p.accel_turn_on_bias_sigma_m_s2 == 0.2
 
 
+def _scale_error_rms(preset: str, omega_rad_s: float = 3.0, seeds: int = 40) -> float:
+    """RMS over IMU instances of the gyro's rate error beyond its bias, spinning at ``omega`` about x."""
+    from viotb.envs.sim.imu_model import ImuModel
+
+    t = np.arange(200) / 1000.0
+    omega = np.tile([omega_rad_s, 0.0, 0.0], (len(t), 1))
+    f = np.tile([0.0, 0.0, 9.81], (len(t), 1))
+    errs = []
+    for seed in range(seeds):
+        imu, bias_g, _ = ImuModel(imu_preset(preset), np.random.default_rng(seed)).measure_series_with_biases(
+            t, omega, f
+        )
+        errs.append(np.mean(imu.gyro_B_rad_s - bias_g, axis=0) - omega[0])  # white noise averages out
+    return float(np.sqrt(np.mean(np.square(errs))))
+
+
+def test_calibrated_headset_imu_is_the_raw_part_with_smaller_intrinsic_errors():
+    raw, cal = imu_preset("icm42688-1khz"), imu_preset("icm42688-1khz-calibrated")
+    assert cal.noise == raw.noise and cal.rate_hz == raw.rate_hz
+    assert cal.gyro_turn_on_bias_sigma_rad_s == raw.gyro_turn_on_bias_sigma_rad_s
+    assert cal.gyro_scale_sigma == pytest.approx(raw.gyro_scale_sigma / 10.0)
+    # Closed form of a 3 rad/s spin about x: the rate error is (s_x, m_yx, m_zx) * 3 rad/s, RMS per axis
+    # 3 sqrt((s^2 + 2 m^2) / 3): raw 5.5e-3 rad/s, calibrated 5.5e-4 (white noise averaged out).
+    rms_raw, rms_cal = _scale_error_rms("icm42688-1khz"), _scale_error_rms("icm42688-1khz-calibrated")
+    expected_raw = 3.0 * np.sqrt((raw.gyro_scale_sigma**2 + 2 * raw.misalignment_sigma_rad**2) / 3.0)
+    assert rms_raw == pytest.approx(expected_raw, rel=0.35)
+    assert 5.0 < rms_raw / rms_cal < 20.0
+
+
 def test_head_scenarios_are_the_stereo_rig_and_move_as_described():
     for name in HEAD_SCENARIOS:
         sc = get_scenario(name)
@@ -220,6 +249,8 @@ def test_headset_still_jitter_is_small(tmp_path):
 def test_headset_rejects_bad_input(tmp_path):
     res, _ = _headset(tmp_path, "hover")
     assert res.exit_code == 2 and "headset scenario" in res.output
+    res, _ = _headset(tmp_path, "headset-still", "--imu", "icm4")
+    assert res.exit_code == 2 and "unknown IMU preset 'icm4'" in res.output and "icm42688-1khz" in res.output
     if not STEREO_MERGED:
         res, _ = _headset(tmp_path, "headset-still", "--cameras", "2")
         assert res.exit_code == 2 and "stereo" in res.output

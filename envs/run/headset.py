@@ -62,8 +62,12 @@ class HeadsetOptions:
         sim_pixel_sigma_px: Pixel noise of the ``sim`` front end (px).
         prediction: Predictor settings (its ``latency_s`` is replaced by ``latency_s``).
         msckf: MSCKF settings (None: :data:`HEADSET_MSCKF`, a clone and an update at every frame).
+        imu_preset: IMU part to simulate (:func:`~viotb.envs.sim.imu_model.imu_preset`); None: the
+            scenario's (``icm42688-1khz``). ``icm42688-1khz-calibrated`` is the same part with factory-
+            calibrated intrinsics (scale and misalignment residuals 10x smaller).
         gyro_noise_inflation: Factor on the gyro noise density the estimator is told (the sensor model's
-            is unchanged); see :func:`estimator_imu_noise`.
+            is unchanged); see :func:`estimator_imu_noise`. The default 10 is for the uncalibrated part;
+            1 tells the estimator the sensor's own density.
         window: Window-optimizer settings (None: defaults).
         display: Display pose filter (:mod:`viotb.vio.display_pose`); None renders with the estimator's pose.
         loop: Loop closure beside the estimator (``klt`` only; :class:`FlightLoopClosure`): the pose at IMU
@@ -81,6 +85,7 @@ class HeadsetOptions:
     prediction: PredictionParams = field(default_factory=PredictionParams)
     msckf: MsckfParams | None = None
     window: WindowParams | None = None
+    imu_preset: str | None = None
     gyro_noise_inflation: float = 10.0
     display: DisplayPoseParams | None = field(default_factory=DisplayPoseParams)
     loop: LoopOptions | None = None
@@ -228,7 +233,7 @@ def run_headset(
     duration_s = float(scenario.default_seconds if opts.seconds is None else opts.seconds)
     trajectory = scenario.make_trajectory(duration_s)
     cam = scenario.camera
-    imu_params = imu_preset(scenario.imu_preset)
+    imu_params = imu_preset(scenario.imu_preset if opts.imu_preset is None else opts.imu_preset)
     imu_seq, drop_seq, pix0_seq, lm_seq, pix1_seq = np.random.SeedSequence(opts.seed).spawn(5)
 
     # Truth and IMU at the IMU rate.

@@ -49,6 +49,19 @@ def headset(
     out: Path = typer.Option(
         ..., "--out", help="Output folder: TUM files, metrics.json, plots, headset.rrd."
     ),
+    imu: str | None = typer.Option(
+        None,
+        "--imu",
+        help="IMU part: icm42688-1khz (the scenario's, raw intrinsics) | icm42688-1khz-calibrated "
+        "(factory-calibrated scale/misalignment) | adis16448 | bmi088 | ideal.",
+    ),
+    gyro_noise_inflation: float = typer.Option(
+        10.0,
+        "--gyro-noise-inflation",
+        min=1e-3,
+        help="Factor on the gyro noise density the estimator is told (10: covers the raw part's unmodeled "
+        "scale and misalignment errors; 1: the sensor's own density).",
+    ),
     no_display_filter: bool = typer.Option(
         False,
         "--no-display-filter",
@@ -82,6 +95,8 @@ def headset(
             seconds=seconds,
             seed=seed,
             frontend=frontend,
+            imu_preset=imu,
+            gyro_noise_inflation=gyro_noise_inflation,
             loop=loop_options(loop_closure, map_in, map_out),
             **({"display": None} if no_display_filter else {}),
         )
