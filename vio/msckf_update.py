@@ -32,6 +32,8 @@ from viotb.vio.update_helpers import (
     measurement_compress,
     nullspace_project,
     observability_constrain,
+    random_walk_whitener,
+    track_path_px,
 )
 
 
@@ -60,6 +62,11 @@ class UpdateStats:
     inconsistent: int = 0
     nis_per_dof: float = float("nan")
     nis_per_dof_all: float = float("nan")
+
+
+def track_random_walk_px2_per_px(p: MsckfParams) -> float:
+    """Random-walk variance (px^2 per px of image motion) of the front end's tracks: KLT's, else 0."""
+    return p.klt.track_random_walk_px2_per_px if p.frontend == "klt" else 0.0
 
 
 def _stacked_jacobian(
@@ -186,6 +193,17 @@ def msckf_update(
     if st.has_block(EXTRINSIC_BLOCK):
         o = st.block(EXTRINSIC_BLOCK).offset
         H_x[:, :, o : o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * V, 6)
+    q_px = track_random_walk_px2_per_px(p)
+    if q_px > 0.0:
+        # 3b. Correlated track noise (white + a random walk per pixel of image motion): whiten each
+        #     feature's views to the white sigma before the projection, the generalized-least-squares update.
+        focal_v = np.where(np.arange(V) < K, focal_px, focal_right_px or focal_px)
+        W = random_walk_whitener(
+            track_path_px(xy, mask, focal_v, K), mask, np.arange(V) // K, q_px / p.pixel_sigma_px**2
+        )
+        r = np.einsum("fvw,fwa->fva", W, r.reshape(F, V, 2)).reshape(F, 2 * V)
+        H_f = np.einsum("fvw,fwab->fvab", W, H_f.reshape(F, V, 2, 3)).reshape(F, 2 * V, 3)
+        H_x = np.einsum("fvw,fwab->fvab", W, H_x.reshape(F, V, 2, st.dim)).reshape(F, 2 * V, st.dim)
     # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
     H_o, r_o = nullspace_project(H_x, H_f, r)
     if p.use_fej and p.update_linearization == "current_oc":
