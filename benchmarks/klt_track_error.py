@@ -148,6 +148,23 @@ def fit_noise(tracks: dict[int, np.ndarray], max_lag: int = 30) -> dict:
             sig = float(np.sqrt(_mad_var(dm[sel])))
             by_motion.append({"motion_px": [lo, hi], "n": int(sel.sum()), "inc_sigma_px": sig})
     gross = float(np.mean(np.linalg.norm(d, axis=1) > 3.0))
+    # 3. Non-robust growth (the 0.5 % largest cut: the chi-square gate's share) from windows starting every
+    #    10 frames, up to 40 frames long (what an MSCKF window sees), against frames and against image path.
+    E, P, Kf = [], [], []
+    for a in tracks.values():
+        if not np.all(np.diff(a[:, 0]) == 1):
+            continue
+        for s0 in range(0, len(a) - 1, 10):
+            b = a[s0 : s0 + 41]
+            E.append(np.sum((b[1:, 1:3] - b[0, 1:3]) ** 2, axis=1) / 2.0)
+            P.append(np.cumsum(np.linalg.norm(np.diff(b[:, 3:5], axis=0), axis=1)))
+            Kf.append(np.arange(1, len(b), dtype=float))
+    e2, path, kf = np.concatenate(E), np.concatenate(P), np.concatenate(Kf)
+    keep = e2 < np.percentile(e2, 99.5)
+    growth = {}
+    for name, x in (("px2_per_frame", kf), ("px2_per_px_of_motion", path)):
+        A = np.column_stack([np.ones(keep.sum()), x[keep]])
+        growth[name] = float(np.linalg.lstsq(A, e2[keep], rcond=None)[0][1])
     return {
         "tracks": len(tracks),
         "increments": int(len(d)),
@@ -160,6 +177,7 @@ def fit_noise(tracks: dict[int, np.ndarray], max_lag: int = 30) -> dict:
         "error_sigma_px_by_lag": {int(k): float(np.sqrt(v)) for k, v in zip(lags, var_k, strict=True)},
         "increment_sigma_by_motion": by_motion,
         "gross_increment_share": gross,
+        "rw_variance_growth_trimmed": growth,
         "median_image_motion_px_per_frame": float(np.median(mv)),
     }
 
