@@ -12,6 +12,14 @@ clone ``k``), each with its own extrinsics ``(R_BCi, p_BCi)``::
 so the pose Jacobian of a cam1 row lands in the same clone block as cam0's. Rows are whitened to cam0's
 normalized noise (cam1 rows times ``f1 / f0``) so the isotropic noise model holds. When the filter estimates
 the cam0 extrinsic, cam1's extrinsic is held at its calibration (its rows have no extrinsic column).
+
+KLT errors are not white: a track slides over the texture, so its error is a random walk on top of white
+noise. Measured on the renders against the exact projection of each track's first 3-D point
+(``benchmarks/klt_track_error.py``), the walk's variance grows with the image motion of the feature
+(0.015-0.03 px^2 per px moved on the figure-8s) while the white part is ~0.1 px. With the KLT front end each
+feature's views are whitened with that covariance (:func:`viotb.vio.update_helpers.random_walk_whitener`,
+clock :func:`viotb.vio.update_helpers.track_path_px`) before the null-space projection, which makes the
+update the generalized-least-squares one; the simulated front end's white noise is left as it is.
 """
 
 from __future__ import annotations
