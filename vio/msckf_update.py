@@ -209,9 +209,9 @@ def msckf_update(
         W = random_walk_whitener(
             track_path_px(xy, mask, focal_v, K), mask, np.arange(V) // K, q_px / p.pixel_sigma_px**2
         )
-        r = np.einsum("fvw,fwa->fva", W, r.reshape(F, V, 2)).reshape(F, 2 * V)
-        H_f = np.einsum("fvw,fwab->fvab", W, H_f.reshape(F, V, 2, 3)).reshape(F, 2 * V, 3)
-        H_x = np.einsum("fvw,fwab->fvab", W, H_x.reshape(F, V, 2, st.dim)).reshape(F, 2 * V, st.dim)
+        r = (W @ r.reshape(F, V, 2)).reshape(F, 2 * V)  # rows are (view, axis): W acts on the views
+        H_f = (W @ H_f.reshape(F, V, 6)).reshape(F, 2 * V, 3)
+        H_x = (W @ H_x.reshape(F, V, 2 * st.dim)).reshape(F, 2 * V, st.dim)
     # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
     H_o, r_o = nullspace_project(H_x, H_f, r)
     if p.use_fej and p.update_linearization == "current_oc":
