@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 from scipy.stats import chi2
-from viotb.vio.lie import quat_wxyz_to_rotmat, rotz
+from viotb.vio.lie import log_so3, quat_wxyz_to_rotmat, rotz, yaw_from_rotmat
 from viotb.vio.types import TrajectoryArrays
 
 ALIGN_MODES = ("posyaw", "se3", "sim3")
@@ -270,8 +270,47 @@ def chi2_bounds(dof: int, n: int, prob: float = 0.95) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+def anchor_first_pose(est: TrajectoryArrays, gt: TrajectoryArrays) -> Alignment:
+    """The yaw-and-translation transform that puts the first estimate on the first ground-truth pose.
+
+    A VIO filter fixes the four unobservable directions (position, yaw) at its initialization and reports
+    covariances relative to that frame, so this is the transform under which its NEES is defined; a
+    least-squares alignment over the whole run (posyaw) instead moves the early poses, whose covariance is
+    near zero, by the mean drift.
+    """
+    R_e0, R_g0 = _rotmats(est)[0], _rotmats(gt)[0]
+    Rz = rotz(yaw_from_rotmat(R_g0) - yaw_from_rotmat(R_e0))
+    return Alignment(Rz, np.asarray(gt.p_WB[0], dtype=float) - Rz @ np.asarray(est.p_WB[0], dtype=float))
+
+
+def _nees_means(
+    align: Alignment,
+    est: TrajectoryArrays,
+    gt: TrajectoryArrays,
+    pos_covs: np.ndarray | None,
+    rot_covs: np.ndarray | None,
+) -> tuple[float, float]:
+    """Mean position and orientation NEES of ``est`` (matched to ``gt``) under ``align`` (NaN when no covs).
+
+    Position: ``e = A p_est - p_gt`` with the covariance rotated by ``A``. Orientation: the body-frame
+    error ``Log(R_est^T A^T R_gt)`` (``R = R_hat Exp(dtheta)``), whose covariance does not depend on the
+    world frame.
+    """
+    pos = rot = float("nan")
+    if pos_covs is not None:
+        covs_W = np.einsum("ij,njk,lk->nil", align.R, pos_covs, align.R)
+        pos = float(np.mean(nees(align.apply(est.p_WB) - gt.p_WB, covs_W)))
+    if rot_covs is not None:
+        R_err = np.einsum("nji,njk->nik", align.apply_rotation(_rotmats(est)), _rotmats(gt))
+        rot = float(np.mean(nees(np.array([log_so3(R) for R in R_err]), rot_covs)))
+    return pos, rot
+
+
 def evaluate_trajectory(
-    est: TrajectoryArrays, gt: TrajectoryArrays, pos_covs: np.ndarray | None = None
+    est: TrajectoryArrays,
+    gt: TrajectoryArrays,
+    pos_covs: np.ndarray | None = None,
+    rot_covs: np.ndarray | None = None,
 ) -> dict[str, float | int]:
     """The ``viotb eval`` metrics of an estimate against ground truth.
 
@@ -282,11 +321,16 @@ def evaluate_trajectory(
         gt: Ground truth (any rate).
         pos_covs: Optional position covariances of the estimate (m^2), shape (len(est), 3, 3), in the
             estimate's world frame; rotated by the posyaw alignment before computing NEES.
+        rot_covs: Optional orientation covariances (rad^2), shape (len(est), 3, 3), of the body-frame error
+            ``dtheta`` in ``R_WB = R_hat Exp(dtheta)``; the error is ``Log(R_hat^T A^T R_gt)`` with ``A`` the
+            posyaw alignment (a body-frame error does not depend on the world frame).
 
     Returns:
         Dict with ``ate_posyaw_m``, ``ate_se3_m``, ``rpe_1m_pct``, ``drift_pct``, ``scale_error_pct``,
-        ``nees_pos_mean`` (NaN without covariances), ``frames`` (poses evaluated) and ``path_length_m``
-        (ground truth over the evaluated span).
+        ``nees_pos_mean`` (NaN without covariances), ``nees_rot_mean`` (only with ``rot_covs``),
+        ``nees_pos_anchored_mean`` and ``nees_rot_anchored_mean`` (with both: NEES under
+        :func:`anchor_first_pose`, the frame the filter's covariance refers to), ``frames`` (poses
+        evaluated) and ``path_length_m`` (ground truth over the evaluated span).
     """
     gt_at, inside = interpolate_trajectory(gt, est.t_s)
     if int(inside.sum()) < 3:
@@ -304,12 +348,12 @@ def evaluate_trajectory(
     se3 = align_umeyama(est_in.p_WB, gt_at.p_WB, "se3")
     nees_mean = float("nan")
     if pos_covs is not None:
-        covs = np.asarray(pos_covs, dtype=float)
-        if covs.shape != (len(est), 3, 3):
-            raise ValueError(f"pos_covs must have shape ({len(est)}, 3, 3), got {covs.shape}")
-        covs_W = np.einsum("ij,njk,lk->nil", posyaw.R, covs[inside], posyaw.R)
-        nees_mean = float(np.mean(nees(posyaw.apply(est_in.p_WB) - gt_at.p_WB, covs_W)))
-    return {
+        pos_covs = np.asarray(pos_covs, dtype=float)
+        if pos_covs.shape != (len(est), 3, 3):
+            raise ValueError(f"pos_covs must have shape ({len(est)}, 3, 3), got {pos_covs.shape}")
+        pos_covs = pos_covs[inside]
+        nees_mean = _nees_means(posyaw, est_in, gt_at, pos_covs, None)[0]
+    out: dict[str, float | int] = {
         "ate_posyaw_m": ate_rmse(posyaw.apply(est_in.p_WB), gt_at.p_WB),
         "ate_se3_m": ate_rmse(se3.apply(est_in.p_WB), gt_at.p_WB),
         "rpe_1m_pct": rpe(est_in, gt_at, (1.0,))[1.0],
@@ -319,3 +363,13 @@ def evaluate_trajectory(
         "frames": len(est_in),
         "path_length_m": path_length_m(gt_at.p_WB),
     }
+    if rot_covs is not None:
+        rot_covs = np.asarray(rot_covs, dtype=float)
+        if rot_covs.shape != (len(est), 3, 3):
+            raise ValueError(f"rot_covs must have shape ({len(est)}, 3, 3), got {rot_covs.shape}")
+        rot_covs = rot_covs[inside]
+        out["nees_rot_mean"] = _nees_means(posyaw, est_in, gt_at, None, rot_covs)[1]
+        if pos_covs is not None:
+            anchored = _nees_means(anchor_first_pose(est_in, gt_at), est_in, gt_at, pos_covs, rot_covs)
+            out["nees_pos_anchored_mean"], out["nees_rot_anchored_mean"] = anchored
+    return out

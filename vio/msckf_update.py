@@ -12,6 +12,14 @@ clone ``k``), each with its own extrinsics ``(R_BCi, p_BCi)``::
 so the pose Jacobian of a cam1 row lands in the same clone block as cam0's. Rows are whitened to cam0's
 normalized noise (cam1 rows times ``f1 / f0``) so the isotropic noise model holds. When the filter estimates
 the cam0 extrinsic, cam1's extrinsic is held at its calibration (its rows have no extrinsic column).
+
+KLT errors are not white: a track slides over the texture, so its error is a random walk on top of white
+noise. Measured on the renders against the exact projection of each track's first 3-D point
+(``benchmarks/klt_track_error.py``), the walk's variance grows with the image motion of the feature
+(0.015-0.03 px^2 per px moved on the figure-8s) while the white part is ~0.1 px. With the KLT front end each
+feature's views are whitened with that covariance (:func:`viotb.vio.update_helpers.random_walk_whitener`,
+clock :func:`viotb.vio.update_helpers.track_path_px`) before the null-space projection, which makes the
+update the generalized-least-squares one; the simulated front end's white noise is left as it is.
 """
 
 from __future__ import annotations
@@ -32,6 +40,8 @@ from viotb.vio.update_helpers import (
     measurement_compress,
     nullspace_project,
     observability_constrain,
+    random_walk_whitener,
+    track_path_px,
 )
 
 
@@ -60,6 +70,11 @@ class UpdateStats:
     inconsistent: int = 0
     nis_per_dof: float = float("nan")
     nis_per_dof_all: float = float("nan")
+
+
+def track_random_walk_px2_per_px(p: MsckfParams) -> float:
+    """Random-walk variance (px^2 per px of image motion) of the front end's tracks: KLT's, else 0."""
+    return p.klt.track_random_walk_px2_per_px if p.frontend == "klt" else 0.0
 
 
 def _stacked_jacobian(
@@ -186,6 +201,17 @@ def msckf_update(
     if st.has_block(EXTRINSIC_BLOCK):
         o = st.block(EXTRINSIC_BLOCK).offset
         H_x[:, :, o : o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * V, 6)
+    q_px = track_random_walk_px2_per_px(p)
+    if q_px > 0.0:
+        # 3b. Correlated track noise (white + a random walk per pixel of image motion): whiten each
+        #     feature's views to the white sigma before the projection, the generalized-least-squares update.
+        focal_v = np.where(np.arange(V) < K, focal_px, focal_right_px or focal_px)
+        W = random_walk_whitener(
+            track_path_px(xy, mask, focal_v, K), mask, np.arange(V) // K, q_px / p.pixel_sigma_px**2
+        )
+        r = (W @ r.reshape(F, V, 2)).reshape(F, 2 * V)  # rows are (view, axis): W acts on the views
+        H_f = (W @ H_f.reshape(F, V, 6)).reshape(F, 2 * V, 3)
+        H_x = (W @ H_x.reshape(F, V, 2 * st.dim)).reshape(F, 2 * V, st.dim)
     # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
     H_o, r_o = nullspace_project(H_x, H_f, r)
     if p.use_fej and p.update_linearization == "current_oc":

@@ -199,3 +199,80 @@ def observability_constrain(H: np.ndarray, U: np.ndarray) -> np.ndarray:
     """
     proj = np.linalg.solve(U.T @ U, U.T)  # (d, dim)
     return H - (H @ U) @ proj
+
+
+def random_walk_whitener(
+    clock: np.ndarray, mask: np.ndarray, group: np.ndarray, rw_to_white_var: float
+) -> np.ndarray:
+    """Whitening matrices of tracks whose error is white noise plus a random walk along the track.
+
+    The error of view ``k`` of one feature is ``w_k + sum_{j <= n_k} u_j`` with white ``w`` (variance
+    ``s_w^2``) and random-walk steps ``u`` (variance ``s_rw^2`` per clock unit, e.g. per frame tracked), the
+    walk restarting at the feature's first view in each camera (``group``): per image axis::
+
+        R_kl = s_w^2 (delta_kl + q min(n_k, n_l) [group_k == group_l]),    q = s_rw^2 / s_w^2,
+
+    with ``n_k`` the clock of view ``k`` minus that of the feature's first valid view in its group. The
+    returned ``W = L^-1`` (``R / s_w^2 = L L^T``, Cholesky) makes ``W e`` white with variance ``s_w^2``, so
+    whitening a feature's residual and Jacobians before the null-space projection gives the
+    generalized-least-squares update (Mourikis and Roumeliotis 2007 assume white noise; for correlated noise
+    the projection must follow the whitening). Masked views are decoupled (identity rows and columns), so
+    their zero rows stay zero.
+
+    Args:
+        clock: Clock of each view (e.g. frame index), shape (F, V).
+        mask: Valid views, shape (F, V), bool.
+        group: Camera of each view, shape (V,), int.
+        rw_to_white_var: ``q = s_rw^2 / s_w^2`` per clock unit (>= 0).
+
+    Returns:
+        ``W``, shape (F, V, V), lower triangular.
+    """
+    if rw_to_white_var < 0.0:
+        raise ValueError(f"random_walk_whitener: rw_to_white_var must be >= 0, got {rw_to_white_var}")
+    clock = np.asarray(clock, dtype=float)
+    m = np.asarray(mask, dtype=bool)
+    group = np.asarray(group)
+    n = np.zeros_like(clock)
+    for g in np.unique(group):
+        cols = group == g
+        c = np.where(m[:, cols], clock[:, cols], np.inf)
+        first = np.min(c, axis=1, keepdims=True)
+        n[:, cols] = np.where(m[:, cols], clock[:, cols] - np.where(np.isfinite(first), first, 0.0), 0.0)
+    same = (group[:, None] == group[None, :])[None]
+    both = m[:, :, None] & m[:, None, :]
+    R = rw_to_white_var * np.minimum(n[:, :, None], n[:, None, :]) * (same & both)
+    R += np.eye(clock.shape[1])[None]
+    L = np.linalg.cholesky(R)
+    return np.linalg.inv(L)
+
+
+def track_path_px(
+    xy: np.ndarray, mask: np.ndarray, focal_px: np.ndarray, views_per_camera: int
+) -> np.ndarray:
+    """Image path (px) each feature has travelled at each view since its first valid view in that camera.
+
+    Views are ordered by time within each camera (``views_per_camera`` consecutive views per camera); the
+    path sums the distances between consecutive valid views, so a masked view in between is skipped.
+
+    Args:
+        xy: Normalized coordinates, shape (F, V, 2).
+        mask: Valid views, shape (F, V), bool.
+        focal_px: Focal length (px) of each view's camera, shape (V,).
+        views_per_camera: Views of one camera (``V`` is a multiple of it).
+
+    Returns:
+        Path length (px), shape (F, V); 0 at masked views and at each first view.
+    """
+    F, V = mask.shape
+    out = np.zeros((F, V))
+    for c0 in range(0, V, views_per_camera):
+        last = np.full((F, 2), np.nan)
+        total = np.zeros(F)
+        for v in range(c0, c0 + views_per_camera):
+            m = mask[:, v]
+            step = np.linalg.norm(xy[:, v] - last, axis=1) * focal_px[v]
+            total = np.where(m & np.isfinite(step), total + np.nan_to_num(step), total)
+            out[:, v] = np.where(m, total, 0.0)
+            last = np.where(m[:, None], xy[:, v], last)
+    return out

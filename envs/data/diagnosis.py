@@ -26,12 +26,16 @@ from viotb.vio.camera import CameraCalibration
 from viotb.vio.lie import exp_so3, log_so3
 from viotb.vio.types import CalibrationDrift
 
-KLT_RENDER_PIXEL_SIGMA_PX = 0.3
+KLT_RENDER_PIXEL_SIGMA_PX = 0.2
 """White-noise equivalent pixel sigma (px) of KLT on the rendered recordings, for the monitor's NIS reference.
 
-Measured with the MSCKF told 1 px, 10 s recordings, seed 0: the NIS per dof of nominal figure-8s has a
-median 0.022 (a 0.15 px equivalent) and 30-update window means up to 0.052 at 1x speed; told 0.3 px, a
-median 0.24 and window means up to 0.57. 0.3 px is the conservative round figure (README, "on your own data").
+Measured with the MSCKF told 1 px white noise only, 10 s recordings, seed 0: the NIS per dof of nominal
+figure-8s has a median 0.022 (a 0.15 px equivalent) and 30-update window means up to 0.052 at 1x speed; told
+0.3 px, a median 0.24 and window means up to 0.57; 0.3 px was the conservative round figure then. The KLT
+track model (white plus a random walk per px of image motion, ``KltParams.track_random_walk_px2_per_px``)
+whitens the residuals with a larger covariance and lowers the NIS 2-3x (first 240 frames, 1 px: 15 s
+figure-8, median 0.022 -> 0.011, 30-update window means up to 0.061 -> 0.030; 20 s aggressive, 0.056 ->
+0.018, up to 0.106 -> 0.039), so the reference is 0.2 px (0.04 at 1 px), keeping the test's sensitivity.
 """
 
 WINDOW_KLT_RENDER_NIS_PER_DOF = 0.36

@@ -205,8 +205,17 @@ def evaluate_dataset(
             gt_span = TrajectoryArrays(gt.t_s[mask], gt.p_WB[mask], gt.quat_wxyz_WB[mask])
             write_tum(tmp_dir / "groundtruth_tum.txt", gt_span)
             pos_covs = np.array([e.cov_position_W_m2 for e in estimates])
+            rot_covs = np.array([e.cov_orientation_rad2 for e in estimates])
             usable = covariances_usable(pos_covs)
-            result.update(evaluate_trajectory(est_traj, gt, pos_covs=pos_covs if usable else None))
+            rot_usable = usable and covariances_usable(rot_covs)
+            result.update(
+                evaluate_trajectory(
+                    est_traj,
+                    gt,
+                    pos_covs=pos_covs if usable else None,
+                    rot_covs=rot_covs if rot_usable else None,
+                )
+            )
             if not usable:
                 notes.append(
                     f"nees_pos_mean: null (the {opts.estimator} estimator reports no positive-definite "

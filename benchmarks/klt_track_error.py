@@ -1,0 +1,202 @@
+"""Measure the KLT front end's error along each track against the exact projection of the tracked 3-D point.
+
+For a rendered recording (``viotb record SCENARIO``): run :class:`viotb.vio.frontend.KltTracker` over every
+frame; at a track's first observation cast the ray of the measured pixel from the true camera centre into the
+MuJoCo scene (``mujoco.mj_ray``, the vehicle excluded), which gives the 3-D point the track started on; then
+project that point with the true pose into every later frame of the track. ``e_k`` (px) is the KLT position
+minus that projection, ``k`` frames after the first observation (``e_0 = 0`` by construction). The renderer
+itself projects to 0.08 px, so ``e_k`` is the front end's error.
+
+Model fitted (per image axis, in px): ``e_k = w_k - w_0 + sum_{j=1..k} u_j`` with white ``w`` (sigma
+``s_w``) and a per-frame random walk ``u`` (sigma ``s_rw``). Two independent estimates:
+
+1. Increments ``d_k = e_k - e_{k-1}``: ``var(d) = 2 s_w^2 + s_rw^2`` and ``cov(d_k, d_{k+1}) = -s_w^2``.
+2. Growth ``var(e_k) = 2 s_w^2 + k s_rw^2`` for ``k >= 1`` (least squares over ``k``).
+
+Robust (MAD) sigmas are used so that a few gross outliers (a track jumping an occluding edge) do not set the
+white-noise level; their share is reported. Also reported: the random-walk step against the image motion
+of the feature per frame (does the slide follow motion or time?).
+
+Usage::
+
+    python benchmarks/klt_track_error.py RECORDING_DIR SCENARIO [--max-frames N] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+def _mad_var(x: np.ndarray) -> float:
+    """Variance from the median absolute deviation about zero (robust to a few gross errors)."""
+    x = np.asarray(x, dtype=float).ravel()
+    return float((1.4826 * np.median(np.abs(x))) ** 2) if x.size else float("nan")
+
+
+def track_errors(
+    rec: Path, scenario: str, max_frames: int | None = None, edge_px: float = 3.0
+) -> tuple[dict[int, np.ndarray], dict[int, float]]:
+    """KLT error of every track against the true projection of its first 3-D point.
+
+    Args:
+        rec: Recording folder.
+        scenario: The scenario it was recorded from (its scene is ray cast).
+        max_frames: Frames to use (None: all).
+        edge_px: Offset (px) of the four neighbour rays that measure the depth step around a first point.
+
+    Returns:
+        ``(errors, depth_step)``: track id -> array (n, 5) of frame index, e_u, e_v (px), u, v of the KLT
+        position (px); and track id -> the largest relative depth difference between the first ray and its
+        four neighbours ``edge_px`` away (large on an occluding contour: the corner is no 3-D point).
+    """
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    import mujoco
+    from viotb.envs.data.euroc import load_image, read_euroc
+    from viotb.envs.data.eval_frames import interpolate_pose
+    from viotb.envs.scenarios.registry import get_scenario
+    from viotb.envs.sim.simulation import Simulation
+    from viotb.models.constants import VEHICLE_BODIES
+    from viotb.vio.frontend import KltTracker
+    from viotb.vio.types import CameraFrame
+
+    ds = read_euroc(rec)
+    sc = get_scenario(scenario)
+    sim = Simulation(sc.vehicle, sc.scene)
+    body = mujoco.mj_name2id(sim.model, mujoco.mjtObj.mjOBJ_BODY, VEHICLE_BODIES[sc.vehicle])
+    mujoco.mj_forward(sim.model, sim.data)
+    cam = ds.calib.camera
+    trk = KltTracker(cam)
+    n = len(ds.cam_t_s) if max_frames is None else min(max_frames, len(ds.cam_t_s))
+    point: dict[int, np.ndarray | None] = {}
+    step: dict[int, float] = {}
+    offsets = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]) * edge_px / cam.fx
+    out: dict[int, list] = {}
+    geom = np.zeros(1, dtype=np.int32)
+    for i in range(n):
+        t = float(ds.cam_t_s[i])
+        tracks = trk.process(CameraFrame(t_s=t, image=load_image(ds, i)), t)
+        R_WB, p_WB = interpolate_pose(ds.groundtruth, t + ds.calib.time_offset_s)
+        R_WC = R_WB @ ds.calib.R_BC
+        p_WC = p_WB + R_WB @ ds.calib.p_BC
+        for tid, xy, uv in zip(tracks.ids, tracks.xy_norm, tracks.uv_px, strict=True):
+            tid = int(tid)
+            if tid not in point:
+                ray = R_WC @ np.array([xy[0], xy[1], 1.0])
+                ray /= np.linalg.norm(ray)
+                dist = mujoco.mj_ray(sim.model, sim.data, p_WC, ray, None, 1, body, geom)
+                point[tid] = p_WC + dist * ray if dist > 0 else None
+                out[tid] = []
+                z0 = (R_WC.T @ (dist * ray))[2]
+                zs = []
+                for off in offsets:
+                    r2 = R_WC @ np.array([xy[0] + off[0], xy[1] + off[1], 1.0])
+                    r2 /= np.linalg.norm(r2)
+                    d2 = mujoco.mj_ray(sim.model, sim.data, p_WC, r2, None, 1, body, geom)
+                    zs.append((R_WC.T @ (d2 * r2))[2] if d2 > 0 else np.inf)
+                step[tid] = float(np.max(np.abs(np.array(zs) - z0)) / max(z0, 1e-6))
+            p_f = point[tid]
+            if p_f is None:
+                continue
+            p_C = R_WC.T @ (p_f - p_WC)
+            if p_C[2] <= 1e-3:
+                continue
+            uv_true = cam.project(p_C[None])[0]
+            out[tid].append((i, *(uv - uv_true), *uv))
+    errors = {k: np.array(v) for k, v in out.items() if len(v) >= 2}
+    return errors, {k: step[k] for k in errors}
+
+
+def fit_noise(tracks: dict[int, np.ndarray], max_lag: int = 30) -> dict:
+    """The white + random-walk model of the module docstring, fitted to the track errors."""
+    d_all, d_next, motion, d_mot = [], [], [], []
+    by_lag: dict[int, list] = {k: [] for k in range(1, max_lag + 1)}
+    for a in tracks.values():
+        if not np.all(np.diff(a[:, 0]) == 1):
+            continue
+        e = a[:, 1:3]
+        d = np.diff(e, axis=0)
+        d_all.append(d)
+        if len(d) >= 2:
+            d_next.append(np.stack([d[:-1], d[1:]], axis=1))
+        mv = np.linalg.norm(np.diff(a[:, 3:5], axis=0), axis=1)
+        motion.append(mv)
+        d_mot.append(d)
+        for k in range(1, min(len(e), max_lag + 1)):
+            by_lag[k].append(e[k])
+    d = np.concatenate(d_all)
+    pairs = np.concatenate(d_next)
+    var_d = _mad_var(d)
+    # Robust lag-1 covariance: var(d_k + d_{k+1}) = 2 var(d) + 2 cov  ->  cov = (var(sum) - 2 var(d)) / 2.
+    cov1 = 0.5 * (_mad_var(pairs[:, 0] + pairs[:, 1]) - 2.0 * var_d)
+    s_w2 = max(-cov1, 0.0)
+    s_rw2_inc = max(var_d - 2.0 * s_w2, 0.0)
+    lags = np.array([k for k in by_lag if len(by_lag[k]) >= 30])
+    var_k = np.array([_mad_var(np.array(by_lag[k])) for k in lags])
+    A = np.column_stack([np.ones(len(lags)), lags.astype(float)])
+    c0, slope = np.linalg.lstsq(A, var_k, rcond=None)[0]
+    mv, dm = np.concatenate(motion), np.concatenate(d_mot)
+    bins = [0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 1e9]
+    by_motion = []
+    for lo, hi in zip(bins[:-1], bins[1:], strict=True):
+        sel = (mv >= lo) & (mv < hi)
+        if sel.sum() >= 30:
+            sig = float(np.sqrt(_mad_var(dm[sel])))
+            by_motion.append({"motion_px": [lo, hi], "n": int(sel.sum()), "inc_sigma_px": sig})
+    gross = float(np.mean(np.linalg.norm(d, axis=1) > 3.0))
+    # 3. Non-robust growth (the 0.5 % largest cut: the chi-square gate's share) from windows starting every
+    #    10 frames, up to 40 frames long (what an MSCKF window sees), against frames and against image path.
+    E, P, Kf = [], [], []
+    for a in tracks.values():
+        if not np.all(np.diff(a[:, 0]) == 1):
+            continue
+        for s0 in range(0, len(a) - 1, 10):
+            b = a[s0 : s0 + 41]
+            E.append(np.sum((b[1:, 1:3] - b[0, 1:3]) ** 2, axis=1) / 2.0)
+            P.append(np.cumsum(np.linalg.norm(np.diff(b[:, 3:5], axis=0), axis=1)))
+            Kf.append(np.arange(1, len(b), dtype=float))
+    e2, path, kf = np.concatenate(E), np.concatenate(P), np.concatenate(Kf)
+    keep = e2 < np.percentile(e2, 99.5)
+    growth = {}
+    for name, x in (("px2_per_frame", kf), ("px2_per_px_of_motion", path)):
+        A = np.column_stack([np.ones(keep.sum()), x[keep]])
+        growth[name] = float(np.linalg.lstsq(A, e2[keep], rcond=None)[0][1])
+    return {
+        "tracks": len(tracks),
+        "increments": int(len(d)),
+        "increment_sigma_px": float(np.sqrt(var_d)),
+        "lag1_cov_px2": float(cov1),
+        "white_sigma_px_from_increments": float(np.sqrt(s_w2)),
+        "rw_sigma_px_per_frame_from_increments": float(np.sqrt(s_rw2_inc)),
+        "white_sigma_px_from_growth": float(np.sqrt(max(c0, 0.0) / 2.0)),
+        "rw_sigma_px_per_frame_from_growth": float(np.sqrt(max(slope, 0.0))),
+        "error_sigma_px_by_lag": {int(k): float(np.sqrt(v)) for k, v in zip(lags, var_k, strict=True)},
+        "increment_sigma_by_motion": by_motion,
+        "gross_increment_share": gross,
+        "rw_variance_growth_trimmed": growth,
+        "median_image_motion_px_per_frame": float(np.median(mv)),
+    }
+
+
+def main() -> None:
+    """Command line: print the fitted model (and ``--json`` the whole result)."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("recording", type=Path)
+    ap.add_argument("scenario")
+    ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args()
+    res = fit_noise(track_errors(a.recording, a.scenario, a.max_frames)[0])
+    if a.json:
+        print(json.dumps(res, indent=1))
+        return
+    for k, v in res.items():
+        print(f"{k:40s} {v}")
+
+
+if __name__ == "__main__":
+    main()
