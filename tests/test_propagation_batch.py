@@ -9,7 +9,14 @@ relative on random IMU streams, with first estimates and duplicate timestamps.
 import numpy as np
 import pytest
 from viotb.vio.lie import exp_so3, exp_so3_batch, log_so3, right_jacobian_so3, right_jacobian_so3_batch
-from viotb.vio.propagator import Integration, discrete_noise, integrate_step, propagate_values
+from viotb.vio.propagator import (
+    Integration,
+    discrete_noise,
+    integrate_step,
+    interpolate_readings,
+    propagate_values,
+    select_imu_readings,
+)
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
 
@@ -98,3 +105,26 @@ def test_batched_so3_functions_match_the_scalar_ones():
     for k, v in enumerate(phis):
         np.testing.assert_allclose(E[k], exp_so3(v), rtol=0, atol=1e-14)
         np.testing.assert_allclose(J[k], right_jacobian_so3(v), rtol=0, atol=1e-14)
+
+
+def test_interpolation_and_selection_match_numpy_interp():
+    rng = np.random.default_rng(7)
+    t = np.cumsum(rng.uniform(0.001, 0.01, 30))
+    vals = rng.normal(size=(30, 3))
+    queries = np.concatenate([t[[0, 5, 29]], rng.uniform(t[0] - 0.05, t[-1] + 0.05, 40)])
+    for q in queries:
+        expected = np.array([np.interp(q, t, vals[:, i]) for i in range(3)])
+        np.testing.assert_array_equal(interpolate_readings(t, vals, q), expected)
+    for t0, t1 in (
+        (t[3], t[9]),
+        (t[3] + 1e-4, t[9] - 1e-4),
+        (t[0] - 1.0, t[-1] + 1.0),
+        (t[4] + 1e-5, t[4] + 2e-5),
+    ):
+        ts, gs, _ = select_imu_readings(t, vals, vals, t0, t1)
+        inside = (t > t0) & (t < t1)
+        np.testing.assert_array_equal(ts, np.concatenate([[t0], t[inside], [t1]]))
+        np.testing.assert_array_equal(gs[1:-1], vals[inside])
+        np.testing.assert_array_equal(
+            gs[[0, -1]], [interpolate_readings(t, vals, t0), interpolate_readings(t, vals, t1)]
+        )

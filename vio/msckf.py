@@ -181,7 +181,8 @@ class MsckfEstimator:
         phi_tot, q_tot = phi @ phi0, phi @ q0 @ phi.T + q
         t_out = max(t_new, t0)
         self._pred_cache = (self._version, t_out, vals, phi_tot, q_tot)
-        P = marginal_covariance(st, [st.block(IMU_BLOCK)])
+        imu_sl = st.block(IMU_BLOCK).indices
+        P = st.cov[imu_sl, imu_sl]  # read-only view: no copy per control tick
         cov = phi_tot @ P @ phi_tot.T + q_tot
         omega = np.zeros(3)
         if self._last_imu is not None:
