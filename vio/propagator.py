@@ -217,6 +217,7 @@ def integrate_step(
         p1 = p0 + v0 * dt + 0.5 * (g + Ra) * dt * dt
         phi[VEL : VEL + 3, BA : BA + 3] = -R0 * dt
         phi[POS : POS + 3, BA : BA + 3] = -0.5 * R0 * dt * dt
+        jr_theta = right_jacobian_so3(theta)
     else:
         half = 0.5 * dt
         theta_m = w0 * half + (w1 - w0) * (half * half) / (2.0 * dt)
@@ -229,14 +230,15 @@ def integrate_step(
         p1 = p0 + v0 * dt + dt * dt / 6.0 * (f0 + 2.0 * fm)
         # d f(tau) / d b_g = R(tau) [a(tau)]x Jr(theta(tau)) tau, since theta(tau) holds -b_g tau.
         Jm = Rm @ skew(am) @ right_jacobian_so3(theta_m) * half
-        J1 = R1 @ skew(a1) @ right_jacobian_so3(theta) * dt
+        jr_theta = right_jacobian_so3(theta)
+        J1 = R1 @ skew(a1) @ jr_theta * dt
         phi[VEL : VEL + 3, BG : BG + 3] = dt / 6.0 * (4.0 * Jm + J1)
         phi[POS : POS + 3, BG : BG + 3] = dt * dt / 6.0 * (2.0 * Jm)
         phi[VEL : VEL + 3, BA : BA + 3] = -dt / 6.0 * (R0 + 4.0 * Rm + R1)
         phi[POS : POS + 3, BA : BA + 3] = -dt * dt / 6.0 * (R0 + 2.0 * Rm)
     fej = imu if imu_fej is None else imu_fej
     phi[THETA : THETA + 3, THETA : THETA + 3] = R1.T @ fej.R_WB
-    phi[THETA : THETA + 3, BG : BG + 3] = -right_jacobian_so3(theta) * dt
+    phi[THETA : THETA + 3, BG : BG + 3] = -jr_theta * dt
     phi[VEL : VEL + 3, THETA : THETA + 3] = -skew(v1 - fej.v_WB - g * dt) @ fej.R_WB
     phi[POS : POS + 3, THETA : THETA + 3] = (
         -skew(p1 - fej.p_WB - fej.v_WB * dt - 0.5 * g * dt * dt) @ fej.R_WB
