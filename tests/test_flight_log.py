@@ -19,13 +19,13 @@ def _tick(rng: np.random.Generator) -> dict:
     }
 
 
-def test_columns_hold_every_tick_exactly_past_the_initial_capacity():
+def test_columns_hold_every_tick_exactly_across_chunks():
     rng = np.random.default_rng(0)
     log, ticks, phases = FlightLog(), [], []
-    n = 2500  # more than twice the initial capacity
+    n = 9000  # three chunks of rows
     for k in range(n):
         tick = _tick(rng)
-        phase = ("ground", "takeoff", "mission")[min(k // 1000, 2)]
+        phase = ("ground", "takeoff", "mission")[min(k // 3000, 2)]
         log.append_tick(0.004 * k, phase, **tick)
         ticks.append(tick)
         phases.append(phase)

@@ -1,8 +1,9 @@
 """The flight log of ``viotb fly``: per control tick and per frame records as growable float arrays.
 
 One row of 25 float64 per control tick (250 Hz: 50 kB per flown second) and a phase code, instead of
-ten small numpy arrays and list cells per tick (0.34 MB per flown second); readers get array views of the
-filled rows (``log.p_true_W`` is (N, 3), ``log.t_s`` (N,)), so plots and metrics read the same values.
+ten small numpy arrays and list cells per tick (0.34 MB per flown second). Rows fill fixed-size chunks, so
+the log grows without ever copying itself; readers get read-only arrays of the filled rows
+(``log.p_true_W`` is (N, 3), ``log.t_s`` (N,)), so plots and metrics read the same values.
 """
 
 from __future__ import annotations
@@ -36,25 +37,31 @@ _TICK_WIDTH = sum(w for _, w in _TICK_COLUMNS)
 
 
 class _Rows:
-    """A growable (N, width) float64 array (capacity doubles)."""
+    """Rows of ``width`` float64 in fixed-size chunks: growing never copies what is already stored."""
 
-    def __init__(self, width: int, capacity: int = 1024) -> None:
-        self.data = np.empty((capacity, width))
+    def __init__(self, width: int, chunk_rows: int = 4096) -> None:
+        self._width = width
+        self._chunk_rows = chunk_rows
+        self._chunks: list[np.ndarray] = []
         self.n = 0
 
     def next_row(self) -> np.ndarray:
-        if self.n == self.data.shape[0]:
-            grown = np.empty((2 * self.n, self.data.shape[1]))
-            grown[: self.n] = self.data
-            self.data = grown
-        row = self.data[self.n]
+        k = self.n % self._chunk_rows
+        if k == 0:
+            self._chunks.append(np.empty((self._chunk_rows, self._width)))
         self.n += 1
-        return row
+        return self._chunks[-1][k]
 
     def column(self, key: int | slice) -> np.ndarray:
-        view = self.data[: self.n, key]
-        view.flags.writeable = False
-        return view
+        """The filled rows of one column (a read-only view for one chunk, else a read-only copy)."""
+        if not self._chunks:
+            out = np.empty((0, self._width))[:, key]
+        elif len(self._chunks) == 1:
+            out = self._chunks[0][: self.n, key]
+        else:
+            out = np.concatenate([c[:, key] for c in self._chunks])[: self.n]
+        out.flags.writeable = False
+        return out
 
 
 class FlightLog:
@@ -70,9 +77,9 @@ class FlightLog:
     def __init__(self) -> None:
         """Create an empty log."""
         self._ticks = _Rows(_TICK_WIDTH)
-        self._phase_codes = np.empty(1024, dtype=np.int8)
+        self._phase_codes = np.empty(4096, dtype=np.int8)
         self._phase_names: list[str] = []
-        self._frames = _Rows(2, 64)
+        self._frames = _Rows(2, 1024)
         self.frame_conditions: list[tuple[str, ...]] = []
 
     def __len__(self) -> int:
