@@ -130,10 +130,7 @@ class ImuBuffer:
 
 
 def interpolate_readings(t_s: np.ndarray, values: np.ndarray, t_query: float) -> np.ndarray:
-    """Linear interpolation of readings ``values`` (N, D) at ``t_query``; held constant outside the range.
-
-    Every column at once, with the arithmetic of ``np.interp`` (bit-identical to it column by column).
-    """
+    """Linear interpolation of ``values`` (N, D) at ``t_query`` (held outside), as np.interp per column."""
     j = int(np.searchsorted(t_s, t_query, side="right")) - 1
     if j < 0:
         return values[0].copy()
@@ -164,18 +161,12 @@ def select_imu_readings(
         raise ValueError(f"select_imu_readings: t1_s={t1_s} must be after t0_s={t0_s}")
     i0 = int(np.searchsorted(t_s, t0_s, side="right"))  # readings strictly inside (t0_s, t1_s)
     i1 = max(i0, int(np.searchsorted(t_s, t1_s, side="left")))
-    n = i1 - i0 + 2
-    t_out, g_out, a_out = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
-    t_out[0], t_out[1:-1], t_out[-1] = t0_s, t_s[i0:i1], t1_s
-    g_out[0], g_out[1:-1], g_out[-1] = (
-        interpolate_readings(t_s, gyro, t0_s),
-        gyro[i0:i1],
-        interpolate_readings(t_s, gyro, t1_s),
+    t_out = np.concatenate([[t0_s], t_s[i0:i1], [t1_s]])
+    g_out = np.vstack(
+        [interpolate_readings(t_s, gyro, t0_s), gyro[i0:i1], interpolate_readings(t_s, gyro, t1_s)]
     )
-    a_out[0], a_out[1:-1], a_out[-1] = (
-        interpolate_readings(t_s, accel, t0_s),
-        accel[i0:i1],
-        interpolate_readings(t_s, accel, t1_s),
+    a_out = np.vstack(
+        [interpolate_readings(t_s, accel, t0_s), accel[i0:i1], interpolate_readings(t_s, accel, t1_s)]
     )
     return t_out, g_out, a_out
 
@@ -291,7 +282,7 @@ def integrate_batch(
         imu: State at the start of the first interval (biases are held).
         w0: Bias-corrected rates (rad/s) at the interval starts, shape (m, 3); ``w1`` at the ends.
         w1: See ``w0``.
-        a0: Bias-corrected specific forces (m/s^2) at the starts, shape (m, 3); ``a1`` at the ends.
+        a0: Bias-corrected specific forces (m/s^2) at the starts, shape (m, 3); ``a1`` at the ends (like w).
         a1: See ``a0``.
         dt: Interval lengths (s), shape (m,), all > 0.
         method: Integration method.
