@@ -87,12 +87,23 @@ class FlightLog:
         return self._ticks.n
 
     def append_tick(self, t_s: float, phase: str, **values) -> None:
-        """Add one control tick: ``values`` holds every tick column but ``t_s`` (arrays or floats)."""
+        """Add one control tick.
+
+        ``values`` holds every tick column but ``t_s``: an array, or a float for the whole column (NaN
+        before the gauge is fixed).
+
+        Raises:
+            KeyError: A missing column.
+        """
         k = self._ticks.n
-        row = self._ticks.next_row()
-        row[0] = t_s
-        for name, value in values.items():
-            row[_TICK_SLICES[name]] = value
+        cells = [float(t_s)]
+        for name, width in _TICK_COLUMNS[1:]:
+            v = values[name]
+            if isinstance(v, np.ndarray) and v.ndim:
+                cells.extend(v.tolist())  # one row assignment below: faster than ten slice writes
+            else:
+                cells.extend([float(v)] * width)
+        self._ticks.next_row()[:] = cells
         if k == self._phase_codes.shape[0]:
             self._phase_codes = np.concatenate([self._phase_codes, np.empty_like(self._phase_codes)])
         if phase not in self._phase_names:
