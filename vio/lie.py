@@ -202,7 +202,8 @@ def skew_batch(v: np.ndarray) -> np.ndarray:
 
 def _rodrigues_batch(phi: np.ndarray, small: float, first, second) -> np.ndarray:
     """``I + c1(angle) [phi]x + c2(angle) [phi]x^2`` for stacked ``phi`` (N, 3); series below ``small``."""
-    angle = np.sqrt((phi * phi).sum(axis=1))
+    # Stacked 1x3 @ 3x1 products: the dot kernel of np.linalg.norm, so angles equal the scalar functions'.
+    angle = np.sqrt((phi[:, None, :] @ phi[:, :, None])[:, 0, 0])
     k = skew_batch(phi)
     big = angle >= small
     safe = np.where(big, angle, 1.0)
