@@ -57,7 +57,7 @@ class Mixer:
     def wrench(self, thrusts_N: np.ndarray) -> tuple[float, np.ndarray]:
         """Collective thrust (N) and body moments (N m, shape (3,)) from motor thrusts (N, shape (4,))."""
         f = np.asarray(thrusts_N, dtype=float)
-        if f.shape != (4,) or not np.all(np.isfinite(f)):
+        if f.shape != (4,) or not np.isfinite(f).all():
             raise ValueError(
                 f"Mixer.wrench: thrusts_N must be 4 finite values, got {np.asarray(thrusts_N)!r}"
             )
@@ -72,7 +72,7 @@ class Mixer:
             moments_B_Nm: Desired body moments (N m), shape (3,).
         """
         moments = np.asarray(moments_B_Nm, dtype=float)
-        if moments.shape != (3,) or not np.all(np.isfinite(moments)) or not np.isfinite(collective_N):
+        if moments.shape != (3,) or not np.isfinite(moments).all() or not np.isfinite(collective_N):
             raise ValueError(
                 f"Mixer.motor_thrusts: need a finite collective and 3 finite moments, got "
                 f"{collective_N!r}, {np.asarray(moments_B_Nm)!r}"

@@ -204,6 +204,21 @@ def test_gray_matches_opencv_and_noise_is_seeded(room):
     assert abs(diff.mean()) < 0.1 and diff.std() == pytest.approx(3.0, rel=0.05)
 
 
+def test_gray_with_reused_buffers_is_the_plain_conversion_and_never_aliased(room):
+    sim, renderer = room
+    images = []
+    for view in ("centre_east", "wall_north_1m", "centre_east"):
+        p, yaw, pitch = ROOM_VIEWS[view]
+        sim.set_pose(_body_rotation(yaw, pitch), np.array(p))
+        gray = renderer.render_gray(sim.data)
+        expected = np.clip(np.rint(rgb_to_gray(renderer.render_rgb(sim.data))), 0, 255).astype(np.uint8)
+        np.testing.assert_array_equal(gray, expected)
+        images.append(gray)
+    # Each returned image is its own array: later renders do not overwrite it.
+    assert not np.array_equal(images[0], images[1])
+    np.testing.assert_array_equal(images[0], images[2])
+
+
 def test_renderer_rejects_bad_arguments(room):
     sim, _ = room
     with pytest.raises(ValueError, match="exceeds the model's offscreen buffer"):

@@ -189,3 +189,49 @@ def log_se3(T: np.ndarray) -> np.ndarray:
     phi = log_so3(T[:3, :3])
     rho = np.linalg.solve(left_jacobian_so3(phi), T[:3, 3])
     return np.concatenate([rho, phi])
+
+
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """Stacked :func:`skew`: vectors, shape (N, 3) -> cross-product matrices, shape (N, 3, 3)."""
+    out = np.zeros((v.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out
+
+
+def _rodrigues_batch(phi: np.ndarray, small: float, first, second) -> np.ndarray:
+    """``I + c1(angle) [phi]x + c2(angle) [phi]x^2`` for stacked ``phi`` (N, 3); series below ``small``."""
+    # Stacked 1x3 @ 3x1 products: the dot kernel of np.linalg.norm, so angles equal the scalar functions'.
+    angle = np.sqrt((phi[:, None, :] @ phi[:, :, None])[:, 0, 0])
+    k = skew_batch(phi)
+    big = angle >= small
+    safe = np.where(big, angle, 1.0)
+    c1, c2 = first(safe), second(safe)
+    c1 = np.where(big, c1, first(None))
+    c2 = np.where(big, c2, second(None))
+    out = c1[:, None, None] * k + (c2[:, None, None] * k) @ k
+    out[:, 0, 0] += 1.0
+    out[:, 1, 1] += 1.0
+    out[:, 2, 2] += 1.0
+    return out
+
+
+def exp_so3_batch(phi: np.ndarray) -> np.ndarray:
+    """Stacked :func:`exp_so3`: rotation vectors (rad), shape (N, 3) -> rotations, shape (N, 3, 3)."""
+    return _rodrigues_batch(
+        phi,
+        _SMALL_ANGLE_RAD,
+        lambda a: 1.0 if a is None else np.sin(a) / a,
+        lambda a: 0.5 if a is None else (1.0 - np.cos(a)) / a**2,
+    )
+
+
+def right_jacobian_so3_batch(phi: np.ndarray) -> np.ndarray:
+    """Stacked :func:`right_jacobian_so3`: shape (N, 3) -> (N, 3, 3) (Forster 2017, eq. 8)."""
+    return _rodrigues_batch(
+        phi,
+        1e-6,
+        lambda a: -0.5 if a is None else -(1.0 - np.cos(a)) / a**2,
+        lambda a: 1.0 / 6.0 if a is None else (a - np.sin(a)) / a**3,
+    )

@@ -112,7 +112,7 @@ class MsckfEstimator:
         self._diverged_reason = ""
         self._runaway_count = 0
         self._version = 0
-        self._pred_cache: tuple[int, float, ImuValues, np.ndarray, np.ndarray] | None = None
+        self._pred_cache: tuple[int, float, ImuValues, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.last_stats = UpdateStats()
         self.zupt_count = 0
         self.keyframe_rule = KeyframeSelector(p.keyframing)
@@ -173,16 +173,21 @@ class MsckfEstimator:
             return None
         t_new = self._last_imu.t_s if self._last_imu is not None else st.t_s
         cache = self._pred_cache
-        if cache is not None and cache[0] == self._version and cache[1] <= t_new:
-            _, t0, vals0, phi0, q0 = cache
+        if cache is not None and cache[0] == self._version and cache[1] == t_new:
+            # No IMU sample since the last call (control ticks outnumber IMU samples): the same prediction.
+            _, t_out, vals, _, _, cov = cache
         else:
-            t0, vals0, phi0, q0 = st.t_s, st.imu, np.eye(15), np.zeros((15, 15))
-        vals, phi, q = self.propagator.predict(vals0, t0, t_new)
-        phi_tot, q_tot = phi @ phi0, phi @ q0 @ phi.T + q
-        t_out = max(t_new, t0)
-        self._pred_cache = (self._version, t_out, vals, phi_tot, q_tot)
-        P = marginal_covariance(st, [st.block(IMU_BLOCK)])
-        cov = phi_tot @ P @ phi_tot.T + q_tot
+            if cache is not None and cache[0] == self._version and cache[1] <= t_new:
+                _, t0, vals0, phi0, q0, _ = cache
+            else:
+                t0, vals0, phi0, q0 = st.t_s, st.imu, np.eye(15), np.zeros((15, 15))
+            vals, phi, q = self.propagator.predict(vals0, t0, t_new)
+            phi_tot, q_tot = phi @ phi0, phi @ q0 @ phi.T + q
+            t_out = max(t_new, t0)
+            imu_sl = st.block(IMU_BLOCK).indices
+            P = st.cov[imu_sl, imu_sl]  # read-only view: no copy per control tick
+            cov = phi_tot @ P @ phi_tot.T + q_tot
+            self._pred_cache = (self._version, t_out, vals, phi_tot, q_tot, cov)
         omega = np.zeros(3)
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s

@@ -31,7 +31,14 @@ from __future__ import annotations
 from enum import Enum
 
 import numpy as np
-from viotb.vio.lie import exp_so3, right_jacobian_so3, skew
+from viotb.vio.lie import (
+    exp_so3,
+    exp_so3_batch,
+    right_jacobian_so3,
+    right_jacobian_so3_batch,
+    skew,
+    skew_batch,
+)
 from viotb.vio.state import (
     BA,
     BG,
@@ -64,7 +71,7 @@ def validate_imu_sample(sample: ImuSample, last_t_s: float | None) -> None:
         arr = np.asarray(value, dtype=float)
         if arr.shape != (3,):
             raise ValueError(f"IMU sample at t={t:.6f} s: {name} must have shape (3,), got {arr.shape}")
-        if not np.all(np.isfinite(arr)):
+        if not np.isfinite(arr).all():
             raise ValueError(f"IMU sample at t={t:.6f} s: {name}={arr.tolist()} is not finite")
     if last_t_s is not None and t <= last_t_s:
         raise ValueError(f"IMU timestamps must increase: got t={t:.9f} s after t={last_t_s:.9f} s")
@@ -123,8 +130,14 @@ class ImuBuffer:
 
 
 def interpolate_readings(t_s: np.ndarray, values: np.ndarray, t_query: float) -> np.ndarray:
-    """Linear interpolation of readings ``values`` (N, 3) at ``t_query``; held constant outside the range."""
-    return np.array([np.interp(t_query, t_s, values[:, i]) for i in range(values.shape[1])])
+    """Linear interpolation of ``values`` (N, D) at ``t_query`` (held outside), as np.interp per column."""
+    j = int(np.searchsorted(t_s, t_query, side="right")) - 1
+    if j < 0:
+        return values[0].copy()
+    if j >= len(t_s) - 1 or t_s[j] == t_query:
+        return values[j].copy()
+    slope = (values[j + 1] - values[j]) / (t_s[j + 1] - t_s[j])
+    return slope * (t_query - t_s[j]) + values[j]
 
 
 def select_imu_readings(
@@ -146,13 +159,14 @@ def select_imu_readings(
         raise ValueError("select_imu_readings: no IMU readings buffered")
     if not t1_s > t0_s:
         raise ValueError(f"select_imu_readings: t1_s={t1_s} must be after t0_s={t0_s}")
-    inside = (t_s > t0_s) & (t_s < t1_s)
-    t_out = np.concatenate([[t0_s], t_s[inside], [t1_s]])
+    i0 = int(np.searchsorted(t_s, t0_s, side="right"))  # readings strictly inside (t0_s, t1_s)
+    i1 = max(i0, int(np.searchsorted(t_s, t1_s, side="left")))
+    t_out = np.concatenate([[t0_s], t_s[i0:i1], [t1_s]])
     g_out = np.vstack(
-        [interpolate_readings(t_s, gyro, t0_s), gyro[inside], interpolate_readings(t_s, gyro, t1_s)]
+        [interpolate_readings(t_s, gyro, t0_s), gyro[i0:i1], interpolate_readings(t_s, gyro, t1_s)]
     )
     a_out = np.vstack(
-        [interpolate_readings(t_s, accel, t0_s), accel[inside], interpolate_readings(t_s, accel, t1_s)]
+        [interpolate_readings(t_s, accel, t0_s), accel[i0:i1], interpolate_readings(t_s, accel, t1_s)]
     )
     return t_out, g_out, a_out
 
@@ -194,6 +208,7 @@ def integrate_step(
         p1 = p0 + v0 * dt + 0.5 * (g + Ra) * dt * dt
         phi[VEL : VEL + 3, BA : BA + 3] = -R0 * dt
         phi[POS : POS + 3, BA : BA + 3] = -0.5 * R0 * dt * dt
+        jr_theta = right_jacobian_so3(theta)
     else:
         half = 0.5 * dt
         theta_m = w0 * half + (w1 - w0) * (half * half) / (2.0 * dt)
@@ -206,14 +221,15 @@ def integrate_step(
         p1 = p0 + v0 * dt + dt * dt / 6.0 * (f0 + 2.0 * fm)
         # d f(tau) / d b_g = R(tau) [a(tau)]x Jr(theta(tau)) tau, since theta(tau) holds -b_g tau.
         Jm = Rm @ skew(am) @ right_jacobian_so3(theta_m) * half
-        J1 = R1 @ skew(a1) @ right_jacobian_so3(theta) * dt
+        jr_theta = right_jacobian_so3(theta)
+        J1 = R1 @ skew(a1) @ jr_theta * dt
         phi[VEL : VEL + 3, BG : BG + 3] = dt / 6.0 * (4.0 * Jm + J1)
         phi[POS : POS + 3, BG : BG + 3] = dt * dt / 6.0 * (2.0 * Jm)
         phi[VEL : VEL + 3, BA : BA + 3] = -dt / 6.0 * (R0 + 4.0 * Rm + R1)
         phi[POS : POS + 3, BA : BA + 3] = -dt * dt / 6.0 * (R0 + 2.0 * Rm)
     fej = imu if imu_fej is None else imu_fej
     phi[THETA : THETA + 3, THETA : THETA + 3] = R1.T @ fej.R_WB
-    phi[THETA : THETA + 3, BG : BG + 3] = -right_jacobian_so3(theta) * dt
+    phi[THETA : THETA + 3, BG : BG + 3] = -jr_theta * dt
     phi[VEL : VEL + 3, THETA : THETA + 3] = -skew(v1 - fej.v_WB - g * dt) @ fej.R_WB
     phi[POS : POS + 3, THETA : THETA + 3] = (
         -skew(p1 - fej.p_WB - fej.v_WB * dt - 0.5 * g * dt * dt) @ fej.R_WB
@@ -241,6 +257,121 @@ def discrete_noise(phi: np.ndarray, noise: ImuNoise, dt: float) -> np.ndarray:
     return Q
 
 
+def _rotate(R: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Stacked ``R[k] @ x[k]``: ``R`` (m, 3, 3), ``x`` (m, 3) -> (m, 3)."""
+    return (R @ x[:, :, None])[:, :, 0]
+
+
+def integrate_batch(
+    imu: ImuValues,
+    w0: np.ndarray,
+    w1: np.ndarray,
+    a0: np.ndarray,
+    a1: np.ndarray,
+    dt: np.ndarray,
+    method: Integration,
+    imu_fej: ImuValues | None = None,
+) -> tuple[ImuValues, np.ndarray]:
+    """:func:`integrate_step` over consecutive intervals at once: the mean chained, ``Phi`` stacked.
+
+    Only the rotation and position chains are Python loops (a 3x3 product, two 3-vector sums per interval,
+    in the per-sample order of operations); the velocity is a running sum (``np.cumsum`` accumulates in
+    order) and every transition block is computed for all intervals in one array operation.
+
+    Args:
+        imu: State at the start of the first interval (biases are held).
+        w0: Bias-corrected rates (rad/s) at the interval starts, shape (m, 3); ``w1`` at the ends.
+        w1: See ``w0``.
+        a0: Bias-corrected specific forces (m/s^2) at the starts, shape (m, 3); ``a1`` at the ends (like w).
+        a1: See ``a0``.
+        dt: Interval lengths (s), shape (m,), all > 0.
+        method: Integration method.
+        imu_fej: First estimates at the start of the first interval (None: ``imu``).
+
+    Returns:
+        ``(state at the end, phi (m, 15, 15))``, ``phi[k]`` the transition of interval k.
+    """
+    g = gravity_W()
+    m = dt.shape[0]
+    dtc = dt[:, None]
+    dt3 = dt[:, None, None]
+    # 1. Rotations at the interval starts (R[:-1]) and ends (R[1:]).
+    theta = 0.5 * (w0 + w1) * dtc
+    if method == Integration.DISCRETE:
+        E = exp_so3_batch(theta)
+        Jr = right_jacobian_so3_batch(theta)
+    else:
+        # One Rodrigues call for the end and mid-interval angles together.
+        half = 0.5 * dtc
+        both = np.vstack([theta, w0 * half + (w1 - w0) * (half * half) / (2.0 * dtc)])
+        E_both, Jr_both = exp_so3_batch(both), right_jacobian_so3_batch(both)
+        E, Em, Jr, Jrm = E_both[:m], E_both[m:], Jr_both[:m], Jr_both[m:]
+    R = np.empty((m + 1, 3, 3))
+    R[0] = imu.R_WB
+    for k in range(m):
+        R[k + 1] = R[k] @ E[k]
+    R0, R1 = R[:-1], R[1:]
+    phi = np.zeros((m, IMU_DIM, IMU_DIM))
+    phi.reshape(m, -1)[:, :: IMU_DIM + 1] = 1.0  # identity diagonals
+    # 2. Velocity and position increments, and the bias columns of Phi.
+    if method == Integration.DISCRETE:
+        acc = g + _rotate(R0, 0.5 * (a0 + a1))
+        dv = acc * dtc
+        dp_acc = 0.5 * acc * dtc * dtc
+        phi[:, VEL : VEL + 3, BA : BA + 3] = -R0 * dt3
+        phi[:, POS : POS + 3, BA : BA + 3] = -0.5 * R0 * dt3 * dt3
+    else:
+        Rm = R0 @ Em
+        am = 0.5 * (a0 + a1)
+        f0 = _rotate(R0, a0) + g
+        fm = _rotate(Rm, am) + g
+        f1 = _rotate(R1, a1) + g
+        dv = dtc / 6.0 * (f0 + 4.0 * fm + f1)
+        dp_acc = dtc * dtc / 6.0 * (f0 + 2.0 * fm)
+        # d f(tau) / d b_g = R(tau) [a(tau)]x Jr(theta(tau)) tau, since theta(tau) holds -b_g tau.
+        Jm = Rm @ skew_batch(am) @ Jrm * (0.5 * dt3)
+        J1 = R1 @ skew_batch(a1) @ Jr * dt3
+        phi[:, VEL : VEL + 3, BG : BG + 3] = dt3 / 6.0 * (4.0 * Jm + J1)
+        phi[:, POS : POS + 3, BG : BG + 3] = dt3 * dt3 / 6.0 * (2.0 * Jm)
+        phi[:, VEL : VEL + 3, BA : BA + 3] = -dt3 / 6.0 * (R0 + 4.0 * Rm + R1)
+        phi[:, POS : POS + 3, BA : BA + 3] = -dt3 * dt3 / 6.0 * (R0 + 2.0 * Rm)
+    v = np.cumsum(np.vstack([imu.v_WB[None], dv]), axis=0)
+    # p_{k+1} = (p_k + v_k dt_k) + dp_k in the per-sample order (a cumsum would group the terms otherwise).
+    vdt = v[:-1] * dtc
+    p = np.empty((m + 1, 3))
+    p[0] = imu.p_WB
+    for k in range(m):
+        p[k + 1] = p[k] + vdt[k] + dp_acc[k]
+    # 3. First-estimates blocks: interval 0 starts at the first estimates, the others at the chained values.
+    fej = imu if imu_fej is None else imu_fej
+    R0f, v0f, p0f = R0.copy(), v[:-1].copy(), p[:-1].copy()
+    R0f[0], v0f[0], p0f[0] = fej.R_WB, fej.v_WB, fej.p_WB
+    phi[:, THETA : THETA + 3, THETA : THETA + 3] = np.swapaxes(R1, 1, 2) @ R0f
+    phi[:, THETA : THETA + 3, BG : BG + 3] = -Jr * dt3
+    phi[:, VEL : VEL + 3, THETA : THETA + 3] = -skew_batch(v[1:] - v0f - g * dtc) @ R0f
+    phi[:, POS : POS + 3, THETA : THETA + 3] = (
+        -skew_batch(p[1:] - p0f - v0f * dtc - 0.5 * g * dtc * dtc) @ R0f
+    )
+    for i in range(3):
+        phi[:, POS + i, VEL + i] = dt
+    new = ImuValues(R[m].copy(), p[m], v[m], imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
+    return new, phi
+
+
+def discrete_noise_batch(phi: np.ndarray, noise: ImuNoise, dt: np.ndarray) -> np.ndarray:
+    """Stacked :func:`discrete_noise`: ``phi`` (m, 15, 15), ``dt`` (m,) s -> ``Q`` (m, 15, 15)."""
+    Bg = phi[:, :9, BG : BG + 3]
+    Ba = phi[:, :9, BA : BA + 3]
+    s_g = (noise.gyro_noise_density_rad_s_sqrthz**2 / dt)[:, None, None]
+    s_a = (noise.accel_noise_density_m_s2_sqrthz**2 / dt)[:, None, None]
+    Q = np.zeros(phi.shape)
+    Q[:, :9, :9] = s_g * (Bg @ np.swapaxes(Bg, 1, 2)) + s_a * (Ba @ np.swapaxes(Ba, 1, 2))
+    for i in range(3):
+        Q[:, BG + i, BG + i] = noise.gyro_random_walk_rad_s2_sqrthz**2 * dt
+        Q[:, BA + i, BA + i] = noise.accel_random_walk_m_s3_sqrthz**2 * dt
+    return Q
+
+
 def propagate_values(
     imu: ImuValues,
     t_s: np.ndarray,
@@ -251,6 +382,13 @@ def propagate_values(
     imu_fej: ImuValues | None = None,
 ) -> tuple[ImuValues, np.ndarray, np.ndarray]:
     """Integrate selected readings (from :func:`select_imu_readings`) and accumulate ``Phi`` and ``Q``.
+
+    The mean and every interval's ``Phi_k``, ``Q_k`` come from :func:`integrate_batch` and
+    :func:`discrete_noise_batch`; the span's ``Phi = Phi_{m-1} ... Phi_0`` and
+    ``Q = sum_k Phi_(m-1..k+1) Q_k Phi_(m-1..k+1)^T`` are accumulated in the recursion order of the
+    per-sample filter, so the state covariance is propagated once per span (:func:`ekf_propagate`).
+    Equal to chaining :func:`integrate_step` and :func:`discrete_noise` per interval to round-off
+    (``tests/test_propagator.py``).
 
     Args:
         imu: State at ``t_s[0]``.
@@ -266,19 +404,23 @@ def propagate_values(
     """
     w = gyro - imu.gyro_bias_rad_s
     a = accel - imu.accel_bias_m_s2
-    phi_tot = np.eye(IMU_DIM)
-    q_tot = np.zeros((IMU_DIM, IMU_DIM))
-    cur, fej = imu, imu_fej
-    for k in range(len(t_s) - 1):
-        dt = float(t_s[k + 1] - t_s[k])
-        if dt <= 0.0:
-            continue
-        cur, phi = integrate_step(cur, w[k], w[k + 1], a[k], a[k + 1], dt, method, fej)
-        fej = None
-        q = discrete_noise(phi, noise, dt)
-        phi_tot = phi @ phi_tot
-        q_tot = phi @ q_tot @ phi.T + q
-    return cur, phi_tot, q_tot
+    dt = np.diff(t_s)
+    k = np.flatnonzero(dt > 0.0)  # zero-length intervals (duplicate end points) are skipped
+    if k.size == 0:
+        return imu.copy(), np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM))
+    if k.size == 1:
+        # One interval (the per-control-tick prediction): the scalar step has less array overhead (1.7x).
+        j, dt_j = int(k[0]), float(dt[k[0]])
+        cur, phi1 = integrate_step(imu, w[j], w[j + 1], a[j], a[j + 1], dt_j, method, imu_fej)
+        return cur, phi1, discrete_noise(phi1, noise, dt_j)
+    dt = dt[k]
+    cur, phi = integrate_batch(imu, w[k], w[k + 1], a[k], a[k + 1], dt, method, imu_fej)
+    q = discrete_noise_batch(phi, noise, dt)
+    phi_tot, q_tot = phi[0], q[0]
+    for j in range(1, k.size):
+        phi_tot = phi[j] @ phi_tot
+        q_tot = phi[j] @ q_tot @ phi[j].T + q[j]
+    return cur, phi_tot.copy(), q_tot.copy()
 
 
 class Propagator:

@@ -55,6 +55,10 @@ class TruthState:
     omega_B: np.ndarray
 
 
+_COS_MAX_TILT = math.cos(math.radians(80.0))
+"""Crash test: a body z axis more than 80 deg from vertical."""
+
+
 def _rotz(yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -180,11 +184,11 @@ class ClosedLoopSim:
     def crashed(self, airborne: bool) -> bool:
         """Crash test: contact once airborne, tilt beyond 80 deg, or leaving the scene bounds."""
         R_WB, p_WB = self.sim.pose()
-        if R_WB[2, 2] < np.cos(np.deg2rad(80.0)):
+        if R_WB[2, 2] < _COS_MAX_TILT:
             return True
         if self._bounds is not None:
-            lo, hi = np.asarray(self._bounds[0]), np.asarray(self._bounds[1])
-            if np.any(p_WB < lo - 0.5) or np.any(p_WB > hi + 0.5):
+            lo, hi = self._bounds
+            if (p_WB < np.subtract(lo, 0.5)).any() or (p_WB > np.add(hi, 0.5)).any():
                 return True
         return airborne and self.sim.in_collision()
 

@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 from viotb.controllers import SE3Controller, SE3Gains
 from viotb.controllers.types import NavState
 from viotb.envs.run.closed_loop import ClosedLoopSim
+from viotb.envs.run.flight_log import FlightLog
 from viotb.envs.run.loop_glue import FlightLoopClosure, LoopOptions, require_images
 from viotb.envs.run.mission import TakeoffSequence
 from viotb.envs.scenarios.failures import failure_fly_scenario
@@ -35,26 +36,6 @@ ProgressFn = Callable[[float, float], None]
 
 CONTROL_RATE_HZ = 250.0
 """Position/attitude controller rate (Hz): a whole multiple of the 1 kHz physics."""
-
-
-@dataclass
-class FlightLog:
-    """Per control tick and per frame records of one flight (lists, converted to arrays at the end)."""
-
-    t_s: list = field(default_factory=list)
-    phase: list = field(default_factory=list)
-    p_true_W: list = field(default_factory=list)
-    p_est_W: list = field(default_factory=list)
-    p_sigma_W: list = field(default_factory=list)
-    p_set_W: list = field(default_factory=list)
-    yaw_true: list = field(default_factory=list)
-    yaw_est: list = field(default_factory=list)
-    thrusts_N: list = field(default_factory=list)
-    gyro_B: list = field(default_factory=list)
-    accel_B: list = field(default_factory=list)
-    frame_t_s: list = field(default_factory=list)
-    frame_features: list = field(default_factory=list)
-    frame_conditions: list = field(default_factory=list)
 
 
 def _gauge(est_R: np.ndarray, est_p: np.ndarray, true_R: np.ndarray, true_p: np.ndarray):
@@ -170,9 +151,7 @@ def fly(
                 # is lost long before its covariance explodes): stop the flight the same way.
                 cond = next(c for c in monitor.report() if c.name == "divergence")
                 diverged, reason = True, f"health monitor: {cond.evidence}"
-            log.frame_t_s.append(loop.t_s)
-            log.frame_features.append(h.tracked_features)
-            log.frame_conditions.append(h.conditions)
+            log.append_frame(loop.t_s, h.tracked_features, h.conditions)
             if lc is not None and loop.last_frame is not None and seq.phase == "mission":
                 # From the mission on: keyframes of the climb carry the filter's unconverged scale.
                 frame_image = loop.last_frame.image
@@ -236,29 +215,31 @@ def _null_notes(
 
 def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, tr, thrusts) -> None:
     """Append one control tick to the log (setpoint and estimate mapped to the truth frame by the gauge)."""
-    nan3 = np.full(3, np.nan)
-    log.t_s.append(loop.t_s)
-    log.phase.append(phase)
-    log.p_true_W.append(tr.p_WB)
-    log.yaw_true.append(yaw_from_rotmat(tr.R_WB))
-    log.thrusts_N.append(np.array(thrusts, dtype=float))
     imu = loop.last_imu
-    log.gyro_B.append(imu.gyro_B_rad_s if imu is not None else nan3)
-    log.accel_B.append(imu.accel_B_m_s2 if imu is not None else nan3)
-    if est is None or gauge is None:
-        log.p_est_W.append(nan3)
-        log.p_sigma_W.append(nan3)
-        log.yaw_est.append(np.nan)
-    else:
+    nan = np.nan
+    p_est = p_sigma = p_set = nan
+    yaw_est = nan
+    if est is not None and gauge is not None:
         R_g, t_g = gauge
-        log.p_est_W.append(R_g @ est.p_WB + t_g)
+        p_est = R_g @ est.p_WB + t_g
         cov_p = R_g @ est.cov_position_W_m2 @ R_g.T
-        log.p_sigma_W.append(np.sqrt(np.clip(np.diag(cov_p), 0.0, None)))
-        log.yaw_est.append(yaw_from_rotmat(R_g @ est.R_WB))
-    if setpoint is None or gauge is None:
-        log.p_set_W.append(nan3)
-    else:
-        log.p_set_W.append(gauge[0] @ setpoint.p_W + gauge[1])
+        p_sigma = np.sqrt(np.clip(np.diag(cov_p), 0.0, None))
+        yaw_est = yaw_from_rotmat(R_g @ est.R_WB)
+    if setpoint is not None and gauge is not None:
+        p_set = gauge[0] @ setpoint.p_W + gauge[1]
+    log.append_tick(
+        loop.t_s,
+        phase,
+        p_true_W=tr.p_WB,
+        p_est_W=p_est,
+        p_sigma_W=p_sigma,
+        p_set_W=p_set,
+        yaw_true=yaw_from_rotmat(tr.R_WB),
+        yaw_est=yaw_est,
+        thrusts_N=thrusts,
+        gyro_B=nan if imu is None else imu.gyro_B_rad_s,
+        accel_B=nan if imu is None else imu.accel_B_m_s2,
+    )
 
 
 def _blackout_metrics(log: FlightLog, blackouts: tuple) -> dict:

@@ -32,6 +32,7 @@ _R_CMUJOCO_COPENCV = np.diag([1.0, -1.0, -1.0])
 
 GRAY_WEIGHTS = np.array([0.299, 0.587, 0.114])
 """ITU-R BT.601 luma weights for RGB -> gray (the weights OpenCV's cvtColor uses)."""
+_GRAY_WEIGHTS_F32 = GRAY_WEIGHTS.astype(np.float32)
 
 
 def _egl_available() -> bool:
@@ -222,7 +223,7 @@ def camera_calibration(
 
 def rgb_to_gray(rgb: np.ndarray) -> np.ndarray:
     """RGB uint8 ``(H, W, 3)`` -> gray float64 ``(H, W)`` in [0, 255] (BT.601 weights)."""
-    return rgb.astype(np.float32) @ GRAY_WEIGHTS.astype(np.float32)
+    return rgb.astype(np.float32) @ _GRAY_WEIGHTS_F32
 
 
 class OffscreenRenderer:
@@ -275,6 +276,7 @@ class OffscreenRenderer:
         self._rng = rng
         self._renderer = mujoco.Renderer(model, height=height, width=width)
         self._depth_on = False
+        self._buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def camera(self) -> PinholeCamera:
@@ -291,8 +293,27 @@ class OffscreenRenderer:
         return self._renderer.render()
 
     def render_gray(self, data) -> np.ndarray:
-        """Render this renderer's camera as gray uint8, shape (H, W), with optional Gaussian noise."""
-        return self._to_uint8(rgb_to_gray(self.render_rgb(data)))
+        """Render this renderer's camera as gray uint8, shape (H, W), with optional Gaussian noise.
+
+        The RGB, float and gray intermediates live in buffers reused from frame to frame (the same
+        operations as :func:`rgb_to_gray`, so the same image); only the returned image is new.
+        """
+        if self._buffers is None:
+            h, w = self._camera.height, self._camera.width
+            self._buffers = (
+                np.empty((h, w, 3), np.uint8),
+                np.empty((h, w, 3), np.float32),
+                np.empty((h, w), np.float32),
+            )
+        rgb, rgb_f32, gray = self._buffers
+        if self._depth_on:
+            self._renderer.disable_depth_rendering()
+            self._depth_on = False
+        self._renderer.update_scene(data, camera=self._cam_id)
+        self._renderer.render(out=rgb)
+        np.copyto(rgb_f32, rgb)
+        np.matmul(rgb_f32, _GRAY_WEIGHTS_F32, out=gray)
+        return self._to_uint8(gray)
 
     def render_gray_exposure(self, data, place: Callable[[float], None], offsets_s: np.ndarray) -> np.ndarray:
         """Gray uint8 image integrated over an exposure (motion blur), shape (H, W).

@@ -6,7 +6,9 @@ Figures are medians over repeats (software GL has a slow mode about one run in t
 - ``render``: render ms/frame at 320x240 and 640x480, physics steps/s (:mod:`viotb.envs.tools.bench_render`);
 - ``record``: real-time factor of ``viotb record figure8`` (320x240, 20 Hz camera, 200 Hz IMU);
 - ``estimator``: MSCKF median / p99 ms per frame (KLT tracking + update) on that recording;
-- ``closed_loop``: ``realtime_factor`` of ``viotb fly fly-hover`` with the image front end and in sim mode.
+- ``closed_loop``: ``realtime_factor`` of ``viotb fly fly-hover`` with the image front end and in sim mode;
+- ``gym``: ``viotb/Hover-v0`` env steps/s and real-time factor per estimator set-up, one env and a vector of
+  two (:mod:`viotb.envs.tools.bench_gym`), ``seconds`` of simulated time per measurement.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 
 ProgressFn = Callable[[float, float], None]
 
-SECTIONS = ("render", "record", "estimator", "closed_loop")
+SECTIONS = ("render", "record", "estimator", "closed_loop", "gym")
 
 
 def run_bench(
@@ -85,6 +87,13 @@ def run_bench(
                 ]
                 cl[f"realtime_factor_{frontend}_median"] = float(np.median(rtfs))
             out["closed_loop"] = cl
+        done += 1
+        if progress:
+            progress(done, len(SECTIONS))
+        if "gym" in sections:
+            from viotb.envs.tools.bench_gym import SETUPS, bench
+
+            out["gym"] = {name: bench(name, 0, 2, repeats, seconds=seconds) for name in SETUPS}
         done += 1
         if progress:
             progress(done, len(SECTIONS))

@@ -39,11 +39,23 @@ def _steps_per_s(env: gymnasium.Env, n_steps: int, n_copies: int, seed: int) -> 
     return n_copies * n_steps / (time.perf_counter() - t0)
 
 
-def bench(setup: str, n_steps: int, num_envs: int, repeats: int) -> dict:
-    """Median env steps/s and real-time factor of one set-up, single env and ``SyncVectorEnv``."""
+def bench(setup: str, n_steps: int, num_envs: int, repeats: int, seconds: float | None = None) -> dict:
+    """Median env steps/s and real-time factor of one set-up, single env and ``SyncVectorEnv``.
+
+    Args:
+        setup: A key of :data:`SETUPS`.
+        n_steps: Env steps per measurement (ignored when ``seconds`` is given).
+        num_envs: Copies in the vector env.
+        repeats: Measurements (the median is reported).
+        seconds: Simulated seconds per measurement instead of ``n_steps`` (``seconds / ctrl_dt`` steps, at
+            most one episode).
+    """
     kwargs = {"action_type": "position", **SETUPS[setup]}
     single = gymnasium.make("viotb/Hover-v0", **kwargs)
     ctrl_dt = single.unwrapped.dt
+    if seconds is not None:
+        # Within one episode (the TimeLimit truncates at max_episode_steps).
+        n_steps = max(1, min(round(seconds / ctrl_dt), single.spec.max_episode_steps or 10**9))
     rates = [_steps_per_s(single, n_steps, 1, seed) for seed in range(repeats)]
     single.close()
     vec = gymnasium.vector.SyncVectorEnv(

@@ -49,14 +49,14 @@ def scenarios(as_json: bool = typer.Option(False, "--json", help="Print JSON on 
 @app.command()
 def bench(
     section: list[str] = typer.Option(
-        None, "--section", help="render | record | estimator | closed_loop (repeatable; all by default)."
+        None, "--section", help="render | record | estimator | closed_loop | gym (repeatable; all by default)"
     ),
     seconds: float = typer.Option(10.0, "--seconds", help="Simulated seconds of each timed run."),
     repeats: int = typer.Option(3, "--repeats", min=1, help="Repeats per timed figure (medians reported)."),
     quiet: bool = quiet_option(),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
 ) -> None:
-    """Speed benchmarks: render ms/frame, physics steps/s, record/closed-loop real-time factors."""
+    """Speed benchmarks: render ms/frame, physics steps/s, record/closed-loop/Gymnasium real-time factors."""
     from viotb.envs.tools.bench import SECTIONS, run_bench
 
     try:

@@ -28,10 +28,34 @@ How ``viotb regress`` can run through this engine (not done here; regress is unc
    spec dict in the same way, and assert on the DataFrame.
 """
 
-from viotb.envs.tools.sweep.engine import SweepInterrupted, SweepProgress, SweepResult, run_sweep
-from viotb.envs.tools.sweep.report import sweep_report
-from viotb.envs.tools.sweep.runs import RunConfig, run_config
-from viotb.envs.tools.sweep.spec import SpecError, SweepSpec, load_spec, parse_spec
+from __future__ import annotations
+
+import importlib
+
+# The names load on first use (PEP 562): ``viotb --help`` imports ``sweep.cli``, which runs this file, and
+# the engine pulls in the evaluation stack (scipy.stats, the estimators, MuJoCo): about 3 s at import.
+_HOMES = {
+    "SweepInterrupted": "engine",
+    "SweepProgress": "engine",
+    "SweepResult": "engine",
+    "run_sweep": "engine",
+    "sweep_report": "report",
+    "RunConfig": "runs",
+    "run_config": "runs",
+    "SpecError": "spec",
+    "SweepSpec": "spec",
+    "load_spec": "spec",
+    "parse_spec": "spec",
+}
+
+
+def __getattr__(name: str):
+    """Import a public name from its module on first access."""
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{home}"), name)
+
 
 __all__ = [
     "RunConfig",

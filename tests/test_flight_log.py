@@ -1,0 +1,55 @@
+"""The flight log's columns (envs/run/flight_log.py): values kept exactly, growth, phases, read-only views."""
+
+import numpy as np
+import pytest
+from viotb.envs.run.flight_log import FlightLog
+
+
+def _tick(rng: np.random.Generator) -> dict:
+    return {
+        "p_true_W": rng.normal(size=3),
+        "p_est_W": rng.normal(size=3),
+        "p_sigma_W": rng.uniform(size=3),
+        "p_set_W": rng.normal(size=3),
+        "yaw_true": float(rng.normal()),
+        "yaw_est": float(rng.normal()),
+        "thrusts_N": rng.uniform(size=4),
+        "gyro_B": rng.normal(size=3),
+        "accel_B": rng.normal(size=3),
+    }
+
+
+def test_columns_hold_every_tick_exactly_across_chunks():
+    rng = np.random.default_rng(0)
+    log, ticks, phases = FlightLog(), [], []
+    n = 9000  # three chunks of rows
+    for k in range(n):
+        tick = _tick(rng)
+        phase = ("ground", "takeoff", "mission")[min(k // 3000, 2)]
+        log.append_tick(0.004 * k, phase, **tick)
+        ticks.append(tick)
+        phases.append(phase)
+    assert len(log) == n
+    np.testing.assert_array_equal(log.t_s, 0.004 * np.arange(n))
+    for name in ticks[0]:
+        np.testing.assert_array_equal(getattr(log, name), np.array([t[name] for t in ticks]))
+    assert log.p_true_W.shape == (n, 3) and log.thrusts_N.shape == (n, 4) and log.yaw_est.shape == (n,)
+    assert list(log.phase) == phases
+    with pytest.raises(ValueError):
+        log.p_est_W[0, 0] = 1.0  # views are read-only
+
+
+def test_nan_placeholders_frames_and_unknown_names():
+    log = FlightLog()
+    nan = np.nan
+    log.append_tick(
+        0.0, "ground", p_true_W=np.zeros(3), p_est_W=nan, p_sigma_W=nan, p_set_W=nan, yaw_true=0.0,
+        yaw_est=nan, thrusts_N=np.zeros(4), gyro_B=nan, accel_B=nan,
+    )  # fmt: skip
+    assert np.isnan(log.p_est_W).all() and log.p_est_W.shape == (1, 3)
+    for k in range(100):
+        log.append_frame(0.05 * k, 40 + k, ("zupt",) if k % 2 else ())
+    np.testing.assert_array_equal(log.frame_features, 40 + np.arange(100))
+    assert log.frame_t_s[-1] == pytest.approx(4.95) and log.frame_conditions[1] == ("zupt",)
+    with pytest.raises(AttributeError, match="no attribute 'p_truth'"):
+        _ = log.p_truth
