@@ -6,8 +6,12 @@ initializes from the IMU at rest, a climb to ``takeoff_altitude_m`` above the es
 manoeuvre when the estimator asks for one, then the scenario's mission relative to the hover point, in the
 estimator's frame. No truth is read by the control path after t = 0.
 
-If the estimator reports divergence, the runner stops the motors, records ``diverged`` with the reason and
-ends the flight instead of crashing the process. Metrics compare truth with the setpoints mapped into the
+A feature-based estimator runs inside :class:`~viotb.vio.recovery.RecoveringEstimator` (``RigConfig.
+recovery``): when it loses every feature or diverges, or the health monitor names ``divergence``, the drone
+coasts on the IMU and the estimator re-initializes in the air once features return; ``recoveries`` lists each
+episode. Only what cannot be recovered (a failed IMU, a divergence with no good state to coast from, or any
+divergence with ``recovery`` off) stops the motors: the runner records ``diverged`` with the reason and ends
+the flight instead of crashing the process. Metrics compare truth with the setpoints mapped into the
 truth frame by the 4-DOF (yaw + translation) gauge fixed at initialization, which is used for evaluation only.
 """
 
@@ -30,6 +34,7 @@ from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
 from viotb.vio.metrics import align_umeyama
+from viotb.vio.recovery import RecoveringEstimator
 
 ProgressFn = Callable[[float, float], None]
 
@@ -167,9 +172,12 @@ def fly(
             monitor.observe_frame(loop.t_s, h, loop.estimate())
             if "divergence" in monitor.active() and not h.diverged:
                 # The monitor's bound is tighter than the filter's own (a drone flying blind on the IMU alone
-                # is lost long before its covariance explodes): stop the flight the same way.
+                # is lost long before its covariance explodes): coast and re-initialize, or stop the flight.
                 cond = next(c for c in monitor.report() if c.name == "divergence")
-                diverged, reason = True, f"health monitor: {cond.evidence}"
+                if isinstance(loop.estimator, RecoveringEstimator):
+                    loop.estimator.declare_lost(loop.t_s, f"health monitor: {cond.evidence}")
+                else:
+                    diverged, reason = True, f"health monitor: {cond.evidence}"
             log.frame_t_s.append(loop.t_s)
             log.frame_features.append(h.tracked_features)
             log.frame_conditions.append(h.conditions)
@@ -190,6 +198,8 @@ def fly(
         metrics, seq.init_t_s, seq.mission_t0_s, float(loop.t_s), crashed or diverged
     )
     metrics.update(_blackout_metrics(log, rig.camera.blackout_intervals_s))
+    metrics.update(_lights_out_metrics(log, rig.lights_off_intervals_s))
+    events = loop.estimator.events if isinstance(loop.estimator, RecoveringEstimator) else []
     metrics.update(
         {
             "scenario": scenario,
@@ -207,6 +217,15 @@ def fly(
             "frames_dropped": loop.frames_dropped,
             "conditions": [
                 {"name": c.name, "t_s_first": c.t_s_first, "evidence": c.evidence} for c in monitor.report()
+            ],
+            "recoveries": [
+                {
+                    "t_lost_s": e.t_lost_s,
+                    "reason": e.reason,
+                    "t_reinit_s": e.t_reinit_s,
+                    "coast_position_sigma_m": e.coast_position_sigma_m,
+                }
+                for e in events
             ],
         }
     )
@@ -286,6 +305,35 @@ def _blackout_metrics(log: FlightLog, blackouts: tuple) -> dict:
         after = (ft > b) & (ft <= b + 1.0)
         recovered = recovered and bool(np.any(nf[after] >= 20))
     return {"blackout_excursion_m": excursion, "blackout_est_err_m": est_err, "blackout_recovered": recovered}
+
+
+def _lights_out_metrics(log: FlightLog, intervals: tuple, back_m: float = 0.10) -> dict:
+    """How far the drone strays while the lights are out and how fast it is back at the hold point.
+
+    Returns ``{}`` without lights-out intervals, else ``lights_out_excursion_m`` (largest truth-to-setpoint
+    distance from the first light-off to the end of the flight) and ``lights_out_back_s``: for the last
+    interval, the time (s) after the light returns from which that distance stays below ``back_m`` until the
+    end of the flight (0 if it never left; None if it is not back by the end).
+    """
+    if not intervals:
+        return {}
+    t = np.asarray(log.t_s)
+    err = np.linalg.norm(np.asarray(log.p_true_W) - np.asarray(log.p_set_W), axis=1)
+    after = t >= intervals[0][0]
+    out: dict = {"lights_out_excursion_m": float(np.nanmax(err[after])) if np.any(after) else None}
+    end = intervals[-1][1]
+    m = t >= end
+    if not np.any(m):
+        out["lights_out_back_s"] = None
+        return out
+    far = np.flatnonzero(~(err[m] < back_m))  # NaN (no setpoint) counts as not back
+    if len(far) == 0:
+        out["lights_out_back_s"] = 0.0
+    elif far[-1] == int(np.sum(m)) - 1:
+        out["lights_out_back_s"] = None
+    else:
+        out["lights_out_back_s"] = float(t[m][far[-1] + 1] - end)
+    return out
 
 
 def _metrics(log: FlightLog, mission_t0: float | None, init_time: float | None) -> dict:
