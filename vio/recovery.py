@@ -170,10 +170,12 @@ class RecoveringEstimator:
 
     Args:
         make: Builds a fresh, uninitialized estimator (called now and at each loss of tracking); it must have
-            the ``initializer`` attribute of the feature-based estimators (``msckf``, ``window``).
+            the ``frontend`` and ``initializer`` attributes of the feature-based estimators (``msckf``,
+            ``window``).
         calib: Camera calibration the estimator is given (the coaster uses its time offset).
         noise: IMU noise densities (for the coasted covariance).
         params: Settings.
+        make_reinit: Builds the estimators of the re-initializations (None: ``make``).
 
     Attributes:
         events: Every loss of tracking so far, in order.
@@ -185,17 +187,18 @@ class RecoveringEstimator:
         calib: CameraCalibration,
         noise: ImuNoise,
         params: RecoveryParams | None = None,
+        make_reinit: Callable[[], Estimator] | None = None,
     ) -> None:
         """Build the first inner estimator (tracking mode, not yet initialized)."""
         self.params = params if params is not None else RecoveryParams()
-        self._make = make
+        self._make = make if make_reinit is None else make_reinit
         self._calib = calib
         self._noise = noise
         self._inner: Estimator = make()
-        if not hasattr(self._inner, "initializer"):
+        if not (hasattr(self._inner, "initializer") and hasattr(self._inner, "frontend")):
             raise ValueError(
-                f"RecoveringEstimator: estimator {self._inner.name!r} has no inertial initializer to switch "
-                "off at a re-initialization; only the feature-based estimators (msckf, window) recover"
+                f"RecoveringEstimator: estimator {self._inner.name!r} has no front end and inertial "
+                "initializer; only the feature-based estimators (msckf, window) recover"
             )
         self.name = self._inner.name
         self._mode = "tracking"
