@@ -3,13 +3,18 @@
 Open loop on a simulated-feature stream (a hover with its 3-axis excitation) whose features vanish for 4 s,
 as when the lights go out: the wrapped MSCKF coasts, re-initializes when the features return, and its
 published position neither jumps nor drifts away afterwards. The coast is checked against an independent
-path: the plain MSCKF, which also just propagates the IMU while it sees nothing.
+path: the plain MSCKF, which also just propagates the IMU while it sees nothing. Closed loop:
+``fly-lights-out`` really darkens the render, and the drone coasts through the dark and re-initializes in
+the air.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from viotb.envs.run.fly import fly
 from viotb.envs.run.replay import replay
 from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
 from viotb.vio.factory import make_estimator
@@ -127,3 +132,59 @@ def test_bad_settings_and_estimators_without_a_front_end_are_refused(dark_stream
         RecoveringEstimator(
             lambda: make_estimator("imu-only", st.calib_given, st.noise), st.calib_given, st.noise
         )
+
+
+def test_lights_out_really_darkens_the_render_and_the_light_comes_back():
+    from viotb.envs.sim.render import OffscreenRenderer, SceneLights
+    from viotb.envs.sim.simulation import Simulation
+    from viotb.models.constants import ONBOARD_CAMERA
+
+    sim = Simulation("quadrotor", "textured_room")
+    sim.set_pose(np.eye(3), np.array([0.0, 0.0, 1.0]))
+    with OffscreenRenderer(sim.model, 160, 120, ONBOARD_CAMERA) as renderer:
+        lights = SceneLights(sim.model)
+        lit = renderer.render_gray(sim.data)
+        lights.set_on(False)
+        dark = renderer.render_gray(sim.data)
+        lights.set_on(True)
+        again = renderer.render_gray(sim.data)
+    assert lit.mean() > 30.0 and int(dark.max()) == 0
+    np.testing.assert_array_equal(again, lit)
+
+
+def _lights_out(seconds: float, seed: int, dark_s: tuple[float, float] | None = None):
+    edit = None if dark_s is None else (lambda r: replace(r, lights_off_intervals_s=(dark_s,)))
+    return fly("fly-lights-out", "msckf", seconds=seconds, seed=seed, frontend="sim", edit_rig=edit)
+
+
+def _check_recovered(metrics: dict, dark_s: tuple[float, float], seconds: float) -> None:
+    assert not metrics["crashed"] and not metrics["diverged"], metrics["reason"]
+    assert metrics["seconds"] == pytest.approx(seconds)
+    (ev,) = metrics["recoveries"]
+    assert dark_s[0] < ev["t_lost_s"] < dark_s[0] + 1.0
+    assert dark_s[1] < ev["t_reinit_s"] < dark_s[1] + 0.2
+
+
+def test_short_lights_out_flight_coasts_and_reinitializes_in_the_air():
+    """2 s of darkness at 11 s while hovering, simulated features (the lights-out frames carry none), 16 s.
+
+    Measured (seeds 0/1/2): largest excursion 12.0 / 11.2 / 8.5 cm; the estimate keeps the position drift
+    of the coast (unobservable) and the fresh filter, whose tracks all start together, gets its first
+    updates only as its clone window fills (about 3 s in a hover): back within 10 cm of the hold point by
+    the end of the flight for seed 2 only.
+    """
+    dark = (11.0, 13.0)
+    metrics, log = _lights_out(16.0, 0, dark)
+    _check_recovered(metrics, dark, 16.0)
+    assert metrics["lights_out_excursion_m"] < 0.2
+    conds = [
+        c for t, c in zip(log.frame_t_s, log.frame_conditions, strict=True) if dark[0] + 0.6 < t < dark[1]
+    ]
+    assert conds and all("coasting" in c for c in conds)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(10))
+def test_lights_out_flight_over_ten_seeds_never_crashes_and_always_reinitializes(seed):
+    metrics, _ = _lights_out(22.0, seed)
+    _check_recovered(metrics, (13.0, 17.0), 22.0)
