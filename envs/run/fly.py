@@ -6,8 +6,8 @@ initializes from the IMU at rest, a climb to ``takeoff_altitude_m`` above the es
 manoeuvre when the estimator asks for one, then the scenario's mission relative to the hover point, in the
 estimator's frame. No truth is read by the control path after t = 0.
 
-A feature-based estimator runs inside :class:`~viotb.vio.recovery.RecoveringEstimator` (``RigConfig.
-recovery``): when it loses every feature or diverges, or the health monitor names ``divergence``, the drone
+A feature-based estimator runs inside :class:`~viotb.vio.recovery.RecoveringEstimator` (``recovery``,
+the default): when it loses every feature or diverges, or the health monitor names ``divergence``, the drone
 coasts on the IMU and the estimator re-initializes in the air once features return; ``recoveries`` lists each
 episode. Only what cannot be recovered (a failed IMU, a divergence with no good state to coast from, or any
 divergence with ``recovery`` off) stops the motors: the runner records ``diverged`` with the reason and ends
@@ -82,6 +82,7 @@ def fly(
     severity: float | None = None,
     edit_rig: Callable[[RigConfig], RigConfig] | None = None,
     loop_closure: bool | LoopOptions = False,
+    recovery: bool = True,
 ) -> tuple[dict, FlightLog]:
     """Fly a closed-loop scenario.
 
@@ -101,6 +102,8 @@ def fly(
         edit_rig: Applied last to the run's rig (estimator settings, sensors, wind...; sweeps use it).
         loop_closure: Loop closure beside the filter (True: default options); the controller then flies on
             the corrected pose (``viotb.envs.run.loop_glue.FlightLoopClosure``). Needs the ``klt`` front end.
+        recovery: Coast through a loss of tracking and re-initialize in the air (``RigConfig.recovery``)
+            instead of stopping the flight on divergence; ``edit_rig`` may still turn it off.
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -116,7 +119,7 @@ def fly(
     total_s = sc.default_seconds if seconds is None else float(seconds)
     if not (total_s > 0.0 and np.isfinite(total_s)):
         raise ValueError(f"seconds must be positive and finite, got {seconds}")
-    rig = replace(sc.rig, estimator=estimator, frontend=frontend)
+    rig = replace(sc.rig, estimator=estimator, frontend=frontend, recovery=bool(recovery))
     if online_calibration is not None:
         rig = replace(rig, online_calibration=bool(online_calibration))
     if edit_rig is not None:

@@ -52,7 +52,8 @@ class RigConfig:
             scene is off: frames still arrive, black (``klt``) or without features (``sim``).
         recovery: Wrap the feature-based estimators in :class:`~viotb.vio.recovery.RecoveringEstimator`
             (coast on the IMU through a loss of tracking, re-initialize in the air when features return)
-            instead of letting a diverged estimator end the flight.
+            instead of letting a diverged estimator end the flight. ``viotb fly`` turns it on; off here, so
+            the Gymnasium envs still end an episode on divergence.
     """
 
     scene: str = "textured_room"
@@ -71,7 +72,7 @@ class RigConfig:
     msckf: MsckfParams | None = None
     window: WindowParams | None = None
     lights_off_intervals_s: tuple[tuple[float, float], ...] = ()
-    recovery: bool = True
+    recovery: bool = False
 
     def __post_init__(self) -> None:
         """Validate the lights-out intervals (message names the field and value)."""
