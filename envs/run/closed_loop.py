@@ -33,7 +33,7 @@ from viotb.envs.sim.simulation import Simulation
 from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
 from viotb.vio.factory import make_estimator
 from viotb.vio.msckf import MsckfParams
-from viotb.vio.recovery import RECOVERABLE_ESTIMATORS, RecoveringEstimator
+from viotb.vio.recovery import RECOVERABLE_ESTIMATORS, RecoveringEstimator, cold_start_msckf_params
 from viotb.vio.types import CameraFrame, FeatureObservations, HealthStatus, ImuSample, StateEstimate
 from viotb.vio.window import WindowParams
 
@@ -116,7 +116,8 @@ class ClosedLoopSim:
         )
         if config.recovery and config.estimator in RECOVERABLE_ESTIMATORS:
             # Coasts through a loss of tracking and re-initializes in the air (viotb.vio.recovery).
-            self.estimator = RecoveringEstimator(make, given, imu_params.noise)
+            reinit = partial(make, params=cold_start_msckf_params(params))
+            self.estimator = RecoveringEstimator(make, given, imu_params.noise, make_reinit=reinit)
         else:
             self.estimator = make()
         need_images = config.frontend == "klt" or config.render_images
