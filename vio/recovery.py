@@ -25,11 +25,14 @@ outage of seconds the coasted state is better than any fresh solve could be: the
 only by the gyro-bias error times the outage (1e-3 rad over 4 s), the velocity error grows by the tilt and
 accelerometer-bias errors times the outage, and the biases are the previous filter's. The seed's
 covariance is the coasted one, which carries that growth, inflated by ``cov_inflation`` (the filters'
-own covariance is known to be optimistic with KLT tracks) and floored. Position and yaw are the exception:
-they are unobservable to VIO, the new estimator's world frame is anchored at the coasted pose (so a
-controller's setpoints keep their meaning), and like any initialization the anchor gets the gauge prior
-``sigma_position_m``; how far the coasted pose may have drifted is reported in
-:class:`RecoveryEvent.coast_position_sigma_m`, not put into the new filter (it could not reduce it).
+own covariance is known to be optimistic with KLT tracks) and floored. The position is the exception: it
+is unobservable to VIO, the new estimator's world frame is anchored at the coasted pose (so a controller's
+setpoints keep their meaning), and like any initialization the anchor gets the gauge prior
+``sigma_position_m`` (the yaw keeps its coasted sigma, about 1e-3 rad); how far the coasted pose may have
+drifted is reported in :class:`RecoveryEvent.coast_position_sigma_m`, not put into the new filter (it could
+not reduce it). The closed loop builds the re-initialized MSCKF with :func:`cold_start_msckf_params`
+(``make_reinit``): a clone per frame, so that its first update comes before the coasted velocity error
+makes its clone window inconsistent.
 
 A non-finite or out-of-order IMU sample still raises ``ValueError`` from :meth:`feed_imu`: a failed sensor is
 not recoverable by re-initializing, and the caller stops.
