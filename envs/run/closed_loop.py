@@ -22,17 +22,19 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, replace
+from functools import partial
 
 import mujoco
 import numpy as np
 from viotb.envs.sim.imu_model import ImuModel, imu_preset
-from viotb.envs.sim.render import OffscreenRenderer, camera_calibration
+from viotb.envs.sim.render import OffscreenRenderer, SceneLights, camera_calibration
 from viotb.envs.sim.rig import RigConfig
 from viotb.envs.sim.simulation import Simulation
 from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
 from viotb.vio.factory import make_estimator
 from viotb.vio.msckf import MsckfParams
-from viotb.vio.types import CameraFrame, HealthStatus, ImuSample, StateEstimate
+from viotb.vio.recovery import RECOVERABLE_ESTIMATORS, RecoveringEstimator, cold_start_msckf_params
+from viotb.vio.types import CameraFrame, FeatureObservations, HealthStatus, ImuSample, StateEstimate
 from viotb.vio.window import WindowParams
 
 
@@ -107,7 +109,8 @@ class ClosedLoopSim:
             if config.estimator != "msckf":
                 raise ValueError(f"online calibration needs the msckf estimator, got {config.estimator!r}")
             params = params.with_online_calibration()
-        self.estimator = make_estimator(
+        make = partial(
+            make_estimator,
             config.estimator,
             given,
             imu_params.noise,
@@ -115,6 +118,12 @@ class ClosedLoopSim:
             params=params,
             window_params=window_params,
         )
+        if config.recovery and config.estimator in RECOVERABLE_ESTIMATORS:
+            # Coasts through a loss of tracking and re-initializes in the air (viotb.vio.recovery).
+            reinit = partial(make, params=cold_start_msckf_params(params))
+            self.estimator = RecoveringEstimator(make, given, imu_params.noise, make_reinit=reinit)
+        else:
+            self.estimator = make()
         need_images = config.frontend == "klt" or config.render_images
         self.renderer = (
             OffscreenRenderer(
@@ -129,6 +138,8 @@ class ClosedLoopSim:
 
             self.landmarks_W = scene_landmarks(self.sim.model, self._rng_lm)
         self._blackouts = tuple(cam.blackout_intervals_s)
+        self._lights_off = tuple(config.lights_off_intervals_s)
+        self._lights = SceneLights(self.sim.model) if self._lights_off else None
         self._body_id = self.sim.model.body(QUAD_BODY).id
         self._bounds = SCENE_BOUNDS_M.get(config.scene)
         self._pending: deque[tuple[float, CameraFrame]] = deque()
@@ -206,9 +217,14 @@ class ClosedLoopSim:
             self.frames_dropped += 1
             return
         t_cam = t_exposure - cam.time_offset_s
+        dark = any(a <= t_exposure < b for a, b in self._lights_off)
+        if self._lights is not None:
+            self._lights.set_on(not dark)
         image = self.renderer.render_gray(self.sim.data) if self.renderer is not None else None
         features = None
-        if self.config.frontend == "sim":
+        if self.config.frontend == "sim" and dark:
+            features = FeatureObservations(ids=np.zeros(0, dtype=np.int64), uv_px=np.zeros((0, 2)))
+        elif self.config.frontend == "sim":
             from viotb.envs.sim.landmarks import project_landmarks
 
             R_WC, p_WC = self.sim.camera_pose()

@@ -6,8 +6,12 @@ initializes from the IMU at rest, a climb to ``takeoff_altitude_m`` above the es
 manoeuvre when the estimator asks for one, then the scenario's mission relative to the hover point, in the
 estimator's frame. No truth is read by the control path after t = 0.
 
-If the estimator reports divergence, the runner stops the motors, records ``diverged`` with the reason and
-ends the flight instead of crashing the process. Metrics compare truth with the setpoints mapped into the
+A feature-based estimator runs inside :class:`~viotb.vio.recovery.RecoveringEstimator` (``recovery``,
+the default): when it loses every feature or diverges, or the health monitor names ``divergence``, the drone
+coasts on the IMU and the estimator re-initializes in the air once features return; ``recoveries`` lists each
+episode. Only what cannot be recovered (a failed IMU, a divergence with no good state to coast from, or any
+divergence with ``recovery`` off) stops the motors: the runner records ``diverged`` with the reason and ends
+the flight instead of crashing the process. Metrics compare truth with the setpoints mapped into the
 truth frame by the 4-DOF (yaw + translation) gauge fixed at initialization, which is used for evaluation only.
 """
 
@@ -31,6 +35,7 @@ from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
 from viotb.vio.metrics import align_umeyama
+from viotb.vio.recovery import RecoveringEstimator
 
 ProgressFn = Callable[[float, float], None]
 
@@ -58,6 +63,7 @@ def fly(
     severity: float | None = None,
     edit_rig: Callable[[RigConfig], RigConfig] | None = None,
     loop_closure: bool | LoopOptions = False,
+    recovery: bool = True,
 ) -> tuple[dict, FlightLog]:
     """Fly a closed-loop scenario.
 
@@ -77,6 +83,8 @@ def fly(
         edit_rig: Applied last to the run's rig (estimator settings, sensors, wind...; sweeps use it).
         loop_closure: Loop closure beside the filter (True: default options); the controller then flies on
             the corrected pose (``viotb.envs.run.loop_glue.FlightLoopClosure``). Needs the ``klt`` front end.
+        recovery: Coast through a loss of tracking and re-initialize in the air (``RigConfig.recovery``)
+            instead of stopping the flight on divergence; ``edit_rig`` may still turn it off.
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -92,7 +100,7 @@ def fly(
     total_s = sc.default_seconds if seconds is None else float(seconds)
     if not (total_s > 0.0 and np.isfinite(total_s)):
         raise ValueError(f"seconds must be positive and finite, got {seconds}")
-    rig = replace(sc.rig, estimator=estimator, frontend=frontend)
+    rig = replace(sc.rig, estimator=estimator, frontend=frontend, recovery=bool(recovery))
     if online_calibration is not None:
         rig = replace(rig, online_calibration=bool(online_calibration))
     if edit_rig is not None:
@@ -148,9 +156,12 @@ def fly(
             monitor.observe_frame(loop.t_s, h, loop.estimate())
             if "divergence" in monitor.active() and not h.diverged:
                 # The monitor's bound is tighter than the filter's own (a drone flying blind on the IMU alone
-                # is lost long before its covariance explodes): stop the flight the same way.
+                # is lost long before its covariance explodes): coast and re-initialize, or stop the flight.
                 cond = next(c for c in monitor.report() if c.name == "divergence")
-                diverged, reason = True, f"health monitor: {cond.evidence}"
+                if isinstance(loop.estimator, RecoveringEstimator):
+                    loop.estimator.declare_lost(loop.t_s, f"health monitor: {cond.evidence}")
+                else:
+                    diverged, reason = True, f"health monitor: {cond.evidence}"
             log.append_frame(loop.t_s, h.tracked_features, h.conditions)
             if lc is not None and loop.last_frame is not None and seq.phase == "mission":
                 # From the mission on: keyframes of the climb carry the filter's unconverged scale.
@@ -169,6 +180,8 @@ def fly(
         metrics, seq.init_t_s, seq.mission_t0_s, float(loop.t_s), crashed or diverged
     )
     metrics.update(_blackout_metrics(log, rig.camera.blackout_intervals_s))
+    metrics.update(_lights_out_metrics(log, rig.lights_off_intervals_s))
+    events = loop.estimator.events if isinstance(loop.estimator, RecoveringEstimator) else []
     metrics.update(
         {
             "scenario": scenario,
@@ -186,6 +199,15 @@ def fly(
             "frames_dropped": loop.frames_dropped,
             "conditions": [
                 {"name": c.name, "t_s_first": c.t_s_first, "evidence": c.evidence} for c in monitor.report()
+            ],
+            "recoveries": [
+                {
+                    "t_lost_s": e.t_lost_s,
+                    "reason": e.reason,
+                    "t_reinit_s": e.t_reinit_s,
+                    "coast_position_sigma_m": e.coast_position_sigma_m,
+                }
+                for e in events
             ],
         }
     )
@@ -267,6 +289,35 @@ def _blackout_metrics(log: FlightLog, blackouts: tuple) -> dict:
         after = (ft > b) & (ft <= b + 1.0)
         recovered = recovered and bool(np.any(nf[after] >= 20))
     return {"blackout_excursion_m": excursion, "blackout_est_err_m": est_err, "blackout_recovered": recovered}
+
+
+def _lights_out_metrics(log: FlightLog, intervals: tuple, back_m: float = 0.10) -> dict:
+    """How far the drone strays while the lights are out and how fast it is back at the hold point.
+
+    Returns ``{}`` without lights-out intervals, else ``lights_out_excursion_m`` (largest truth-to-setpoint
+    distance from the first light-off to the end of the flight) and ``lights_out_back_s``: for the last
+    interval, the time (s) after the light returns from which that distance stays below ``back_m`` until the
+    end of the flight (0 if it never left; None if it is not back by the end).
+    """
+    if not intervals:
+        return {}
+    t = np.asarray(log.t_s)
+    err = np.linalg.norm(np.asarray(log.p_true_W) - np.asarray(log.p_set_W), axis=1)
+    after = t >= intervals[0][0]
+    out: dict = {"lights_out_excursion_m": float(np.nanmax(err[after])) if np.any(after) else None}
+    end = intervals[-1][1]
+    m = t >= end
+    if not np.any(m):
+        out["lights_out_back_s"] = None
+        return out
+    far = np.flatnonzero(~(err[m] < back_m))  # NaN (no setpoint) counts as not back
+    if len(far) == 0:
+        out["lights_out_back_s"] = 0.0
+    elif far[-1] == int(np.sum(m)) - 1:
+        out["lights_out_back_s"] = None
+    else:
+        out["lights_out_back_s"] = float(t[m][far[-1] + 1] - end)
+    return out
 
 
 def _metrics(log: FlightLog, mission_t0: float | None, init_time: float | None) -> dict:

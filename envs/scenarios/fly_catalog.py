@@ -23,6 +23,12 @@ def fly_scenarios() -> dict[str, FlyScenario]:
             default_seconds=20.0,
         ),
         FlyScenario(
+            "fly-lights-out",
+            "hover with the room lights off for 4 s at t = 13 s (coast on the IMU, re-initialize in the air)",
+            rig=RigConfig(lights_off_intervals_s=((13.0, 17.0),)),
+            default_seconds=22.0,
+        ),
+        FlyScenario(
             "fly-imu-failure",
             "hover until the IMU fails at t = 12 s: the estimator must report it and the runner stop safely",
             rig=RigConfig(imu_fault_at_s=12.0),

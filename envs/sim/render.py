@@ -226,6 +226,35 @@ def rgb_to_gray(rgb: np.ndarray) -> np.ndarray:
     return rgb.astype(np.float32) @ _GRAY_WEIGHTS_F32
 
 
+class SceneLights:
+    """Switches every light of a model (its lamps and the camera headlight) off and back on.
+
+    With all of them off the render is black (the scenes' materials emit nothing): the lights-out scenarios
+    use it to darken the room mid-flight. The model's own values are restored when switched back on.
+
+    Args:
+        model: The ``mujoco.MjModel`` (edited in place).
+    """
+
+    def __init__(self, model) -> None:
+        """Remember the model's lighting; the lights start on."""
+        self._model = model
+        self._light_active = np.array(model.light_active, copy=True)
+        head = model.vis.headlight
+        self._head = (head.ambient.copy(), head.diffuse.copy(), head.specular.copy())
+        self.on = True
+
+    def set_on(self, on: bool) -> None:
+        """Switch the lights on (the model's values) or off (lamps inactive, headlight black)."""
+        if bool(on) == self.on:
+            return
+        head = self._model.vis.headlight
+        for field, saved in zip((head.ambient, head.diffuse, head.specular), self._head, strict=True):
+            field[:] = saved if on else 0.0
+        self._model.light_active[:] = self._light_active if on else False
+        self.on = bool(on)
+
+
 class OffscreenRenderer:
     """Renders a model's camera offscreen into numpy images (``mujoco.Renderer`` underneath).
 

@@ -48,6 +48,12 @@ class RigConfig:
             :meth:`~viotb.vio.msckf.MsckfParams.with_online_calibration`).
         msckf: MSCKF settings (None: the defaults); the ``sim`` front end still sets its pixel noise.
         window: Window-optimizer settings (None: the defaults); likewise.
+        lights_off_intervals_s: ``((start, end), ...)`` on the IMU clock (s) in which every light of the
+            scene is off: frames still arrive, black (``klt``) or without features (``sim``).
+        recovery: Wrap the feature-based estimators in :class:`~viotb.vio.recovery.RecoveringEstimator`
+            (coast on the IMU through a loss of tracking, re-initialize in the air when features return)
+            instead of letting a diverged estimator end the flight. ``viotb fly`` turns it on; off here, so
+            the Gymnasium envs still end an episode on divergence.
     """
 
     scene: str = "textured_room"
@@ -65,3 +71,14 @@ class RigConfig:
     online_calibration: bool = False
     msckf: MsckfParams | None = None
     window: WindowParams | None = None
+    lights_off_intervals_s: tuple[tuple[float, float], ...] = ()
+    recovery: bool = False
+
+    def __post_init__(self) -> None:
+        """Validate the lights-out intervals (message names the field and value)."""
+        for i, interval in enumerate(self.lights_off_intervals_s):
+            if len(interval) != 2 or not interval[0] < interval[1]:
+                raise ValueError(
+                    f"RigConfig.lights_off_intervals_s[{i}] must be (start, end) with start < end, "
+                    f"got {interval!r}"
+                )

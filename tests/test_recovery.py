@@ -1,0 +1,189 @@
+"""Recovery in flight (``viotb.vio.recovery``): coast through a loss of tracking, re-initialize in the air.
+
+Open loop on a simulated-feature stream (a hover with its 3-axis excitation) whose features vanish for 4 s,
+as when the lights go out: the wrapped MSCKF coasts, re-initializes when the features return, and its
+published position neither jumps nor drifts away afterwards. The coast is checked against an independent
+path: the plain MSCKF, which also just propagates the IMU while it sees nothing. Closed loop:
+``fly-lights-out`` really darkens the render, and the drone coasts through the dark and re-initializes in
+the air.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from viotb.envs.run.fly import fly
+from viotb.envs.run.replay import replay
+from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
+from viotb.vio.factory import make_estimator
+from viotb.vio.msckf import MsckfParams
+from viotb.vio.recovery import RecoveringEstimator, RecoveryParams
+from viotb.vio.types import ImuSample
+
+DARK_S = (6.0, 10.0)
+
+
+@pytest.fixture(scope="module")
+def dark_stream():
+    return synthesize_stream(StreamConfig(motion="hover", seconds=11.0, blackout_s=DARK_S), seed=0)
+
+
+def _make(stream):
+    params = MsckfParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
+    return lambda: make_estimator("msckf", stream.calib_given, stream.noise, frontend="sim", params=params)
+
+
+def _positions(run) -> np.ndarray:
+    return np.array([e.p_WB if e is not None else np.full(3, np.nan) for e in run.estimates])
+
+
+def _truth_at(stream, t_s: np.ndarray) -> np.ndarray:
+    return stream.truth.p_WB[np.searchsorted(stream.truth.t_s, t_s - 1e-9)]
+
+
+def test_the_dark_is_coasted_and_the_filter_reinitializes_when_the_light_returns(dark_stream):
+    st = dark_stream
+    rec = RecoveringEstimator(_make(st), st.calib_given, st.noise)
+    run = replay(rec, st.imu, st.frames, st.time_offset_s)
+    plain = replay(_make(st)(), st.imu, st.frames, st.time_offset_s)
+    t = run.frame_t_imu_s
+    p, p_plain = _positions(run), _positions(plain)
+    p_true = _truth_at(st, t)
+    k0 = int(np.flatnonzero(np.isfinite(p[:, 0]))[0])
+    err = np.linalg.norm((p - p[k0]) - (p_true - p_true[k0]), axis=1)
+
+    # One loss, declared feature_loss_s into the dark; the hand-over on the return_frames-th lit frame.
+    prm = RecoveryParams()
+    assert len(rec.events) == 1
+    ev = rec.events[0]
+    assert ev.reason.startswith("no feature tracked")
+    assert DARK_S[0] + prm.feature_loss_s - 0.051 <= ev.t_lost_s <= DARK_S[0] + prm.feature_loss_s + 0.051
+    assert ev.t_reinit_s == pytest.approx(DARK_S[1] + (prm.return_frames - 1) * 0.05, abs=0.026)
+    dark = (t > ev.t_lost_s) & (t < DARK_S[1])
+    assert all("coasting" in h.conditions for h, d in zip(run.health, dark, strict=True) if d)
+    assert not any(h.diverged for h in run.health)
+
+    # The coast is the plain filter's own IMU propagation (it also sees nothing): the same state.
+    k_end = int(np.flatnonzero(dark)[-1])
+    assert np.linalg.norm(p[k_end] - p_plain[k_end]) < 1e-4
+    # ... and the same covariance, grown by the IMU noise (the filter's marginal; the coaster starts from it).
+    sig, sig_plain = run.estimates[k_end].position_sigma_W_m, plain.estimates[k_end].position_sigma_W_m
+    assert float(np.min(sig)) > 0.03  # grown from < 1 cm at the loss
+    np.testing.assert_allclose(sig, sig_plain, rtol=1e-3)
+
+    # No jump at the hand-over: the published step matches the true one within 5 mm.
+    k_h = int(np.searchsorted(t, ev.t_reinit_s - 1e-9))
+    for k in (k_h, k_h + 1):
+        step_err = (p[k] - p[k - 1]) - (p_true[k] - p_true[k - 1])
+        assert np.linalg.norm(step_err) < 5e-3
+    # The new filter keeps the coasted frame (the drift of the coast is unobservable and stays) and does not
+    # run away from it. Measured: 10.5 cm at the hand-over, up to 13.3 cm while the fresh filter waits for
+    # its first updates (its tracks all start together), 7.8 cm at the end.
+    after = t > ev.t_reinit_s
+    assert np.max(err[after]) < err[k_h] + 0.05
+    assert err[-1] < err[k_h] + 0.01
+
+
+def test_declared_divergence_coasts_from_the_last_good_state_and_hands_over_with_features(dark_stream):
+    st = dark_stream
+    rec = RecoveringEstimator(_make(st), st.calib_given, st.noise)
+    frames = [f for f in st.frames if f.t_s + st.time_offset_s < 5.0]
+    run = replay(rec, st.imu, frames, st.time_offset_s)
+    t_lost = float(run.frame_t_imu_s[-1])
+    last = run.estimates[-1]
+    rec.declare_lost(t_lost, "health monitor: test")
+    assert rec.mode == "coasting" and rec.events[0].t_coast_start_s <= t_lost
+    # Features are there: the hand-over comes on the return_frames-th next frame, in the same frame.
+    nxt = [f for f in st.frames if 5.0 <= f.t_s + st.time_offset_s < 6.0]
+    i = int(np.searchsorted(st.imu.t_s, t_lost, side="right"))
+    run2 = replay(rec, st.imu, nxt, st.time_offset_s, imu_start_s=float(st.imu.t_s[i]))
+    assert rec.mode == "tracking" and rec.events[0].t_reinit_s is not None
+    assert rec.events[0].t_reinit_s == pytest.approx(float(run2.frame_t_imu_s[2]))
+    # Continuity: no jump at the loss or the hand-over (the published steps follow the true ones within
+    # 5 mm), and over the second after the loss the displacement error stays that of a short coast from the
+    # last updated state (measured 2.3 cm: the bias is 3.5 s after a static start, still poorly known).
+    ests = [last, *run2.estimates]
+    p_est = np.array([e.p_WB for e in ests])
+    p_true = _truth_at(st, np.array([e.t_s for e in ests]))
+    drift = np.linalg.norm((p_est - p_est[0]) - (p_true - p_true[0]), axis=1)
+    assert np.max(drift) < 0.03
+    steps = np.linalg.norm(np.diff(p_est, axis=0) - np.diff(p_true, axis=0), axis=1)
+    assert np.max(steps[:5]) < 5e-3  # loss, coast, hand-over (frame 2), first frame after; later: updates
+
+
+def test_a_failed_imu_is_not_recovered_it_raises(dark_stream):
+    st = dark_stream
+    rec = RecoveringEstimator(_make(st), st.calib_given, st.noise)
+    rec.feed_imu(st.imu.sample(0))
+    nan3 = np.full(3, np.nan)
+    with pytest.raises(ValueError, match="not finite"):
+        rec.feed_imu(ImuSample(float(st.imu.t_s[1]), nan3, nan3))
+
+
+def test_bad_settings_and_estimators_without_a_front_end_are_refused(dark_stream):
+    with pytest.raises(ValueError, match="RecoveryParams.feature_loss_s"):
+        RecoveryParams(feature_loss_s=0.0)
+    with pytest.raises(ValueError, match="RecoveryParams.return_frames"):
+        RecoveryParams(return_frames=0)
+    st = dark_stream
+    with pytest.raises(ValueError, match="imu-only"):
+        RecoveringEstimator(
+            lambda: make_estimator("imu-only", st.calib_given, st.noise), st.calib_given, st.noise
+        )
+
+
+def test_lights_out_really_darkens_the_render_and_the_light_comes_back():
+    from viotb.envs.sim.render import OffscreenRenderer, SceneLights
+    from viotb.envs.sim.simulation import Simulation
+    from viotb.models.constants import ONBOARD_CAMERA
+
+    sim = Simulation("quadrotor", "textured_room")
+    sim.set_pose(np.eye(3), np.array([0.0, 0.0, 1.0]))
+    with OffscreenRenderer(sim.model, 160, 120, ONBOARD_CAMERA) as renderer:
+        lights = SceneLights(sim.model)
+        lit = renderer.render_gray(sim.data)
+        lights.set_on(False)
+        dark = renderer.render_gray(sim.data)
+        lights.set_on(True)
+        again = renderer.render_gray(sim.data)
+    assert lit.mean() > 30.0 and int(dark.max()) == 0
+    np.testing.assert_array_equal(again, lit)
+
+
+def _lights_out(seconds: float, seed: int, dark_s: tuple[float, float] | None = None):
+    edit = None if dark_s is None else (lambda r: replace(r, lights_off_intervals_s=(dark_s,)))
+    return fly("fly-lights-out", "msckf", seconds=seconds, seed=seed, frontend="sim", edit_rig=edit)
+
+
+def _check_recovered(metrics: dict, dark_s: tuple[float, float], seconds: float) -> None:
+    assert not metrics["crashed"] and not metrics["diverged"], metrics["reason"]
+    assert metrics["seconds"] == pytest.approx(seconds)
+    (ev,) = metrics["recoveries"]
+    assert dark_s[0] < ev["t_lost_s"] < dark_s[0] + 1.0
+    assert dark_s[1] < ev["t_reinit_s"] < dark_s[1] + 0.2
+
+
+def test_short_lights_out_flight_coasts_and_reinitializes_in_the_air():
+    """2 s of darkness at 11 s while hovering, simulated features (the lights-out frames carry none), 16 s.
+
+    Issue target for a short outage: no crash, back within 10 cm of the hold point within 3 s of the light
+    returning. Measured (seeds 0/1/2): largest excursion 8.8 / 5.3 / 4.1 cm, so never beyond 10 cm.
+    """
+    dark = (11.0, 13.0)
+    metrics, log = _lights_out(16.0, 0, dark)
+    _check_recovered(metrics, dark, 16.0)
+    assert metrics["lights_out_back_s"] is not None and metrics["lights_out_back_s"] <= 3.0
+    assert metrics["lights_out_excursion_m"] < 0.15
+    conds = [
+        c for t, c in zip(log.frame_t_s, log.frame_conditions, strict=True) if dark[0] + 0.6 < t < dark[1]
+    ]
+    assert conds and all("coasting" in c for c in conds)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(10))
+def test_lights_out_flight_over_ten_seeds_never_crashes_and_always_reinitializes(seed):
+    metrics, _ = _lights_out(22.0, seed)
+    _check_recovered(metrics, (13.0, 17.0), 22.0)
