@@ -8,12 +8,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from data_paths import EUROC_MICRO
 from viotb.envs.data.euroc import load_image, read_euroc
 from viotb.envs.data.euroc_writer import write_euroc
 from viotb.vio.camera import CameraCalibration, PinholeCamera
 from viotb.vio.types import ImuNoise, ImuSeries, TrajectoryArrays
 
-MICRO = Path("/work/shared/data/euroc_v1_01_micro")
+MICRO = EUROC_MICRO
 needs_micro = pytest.mark.skipif(not MICRO.exists(), reason="EuRoC micro dataset not present")
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from data_paths import EUROC_MICRO
 from typer.testing import CliRunner
 from viotb.envs.data.diagnosis import EvalTrace, condition_intervals
 from viotb.envs.data.euroc_writer import TRUE_CAMERA_YAML
@@ -22,7 +23,7 @@ from viotb.envs.data.record import record_scenario
 from viotb.envs.tools.cli import app
 from viotb.envs.tools.jsonout import plain_json
 
-MICRO = Path("/work/shared/data/euroc_v1_01_micro")
+MICRO = EUROC_MICRO
 SECONDS = 10.0
 
 

@@ -1,15 +1,14 @@
 """Tests of vio/frontend.py: KLT (known shift, real EuRoC frames), simulated tracker, feature database."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
+from data_paths import EUROC_MICRO
 from viotb.vio.camera import PinholeCamera
 from viotb.vio.frontend import FeatureDatabase, KltParams, KltTracker, SimFeatureTracker
 from viotb.vio.types import CameraFrame, FeatureObservations
 
-EUROC_CAM = Path("/work/shared/data/euroc_v1_01_micro/mav0/cam0")
+EUROC_CAM = EUROC_MICRO / "mav0" / "cam0"
 
 
 def _texture(rng: np.random.Generator, h: int = 240, w: int = 320) -> np.ndarray:

@@ -5,11 +5,11 @@ from __future__ import annotations
 import copy
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.stats
+from data_paths import EUROC_MICRO
 from viotb.vio.camera import CameraCalibration, PinholeCamera
 from viotb.vio.initialization import InitResult
 from viotb.vio.lie import exp_so3, quat_wxyz_to_rotmat
@@ -17,7 +17,7 @@ from viotb.vio.msckf import MsckfEstimator, MsckfParams
 from viotb.vio.state import POS, THETA
 from viotb.vio.types import CameraFrame, FeatureObservations, ImuNoise, ImuSample, gravity_W
 
-EUROC = Path("/work/shared/data/euroc_v1_01_micro/mav0")
+EUROC = EUROC_MICRO / "mav0"
 
 # Camera looks along body +x: camera x = -body y, camera y = -body z, camera z = body x.
 R_BC_FORWARD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])

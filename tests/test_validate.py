@@ -8,10 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from data_paths import EUROC_MICRO
 from viotb.envs.data.euroc import read_euroc
 from viotb.envs.data.validate import bridge_imu_gaps, find_imu_gaps
 
-MICRO = Path("/work/shared/data/euroc_v1_01_micro")
+MICRO = EUROC_MICRO
 needs_micro = pytest.mark.skipif(not MICRO.exists(), reason="EuRoC micro dataset not present")
 
 

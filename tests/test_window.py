@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
+from data_paths import EUROC_MICRO
 from viotb.vio.lie import exp_so3
 from viotb.vio.marginalization import schur_complement
 from viotb.vio.preintegration import ImuPreintegration
@@ -286,7 +286,7 @@ def test_initialize_reports_the_initial_covariance_and_state():
         )
 
 
-MICRO = Path("/work/shared/data/euroc_v1_01_micro")
+MICRO = EUROC_MICRO
 
 
 def _euroc_drift_m(params: WindowParams) -> tuple[float, int]:
