@@ -42,8 +42,10 @@ class InitParams:
         min_parallax: The dynamic solve is tried only if the mean feature displacement across the window
             (normalized image coordinates) reaches this (without parallax nothing fixes the scale).
         max_scale_sigma: Accept a dynamic solution only if the relative 1-sigma of its metric scale (of the
-            mean feature depth) is at most this (0.005: 0.5 %).
-        max_tilt_sigma_rad: ... and the 1-sigma of its gravity direction at most this (rad).
+            window's trajectory length, the accelerometer bias unknown within its prior) is at most this
+            (0.01: 1 %, so a 2 % error is a 2-sigma event).
+        max_tilt_sigma_rad: ... and the 1-sigma of its gravity direction at most this (rad; the bias prior
+            alone allows ``sigma_accel_bias_m_s2 / 9.81`` = 0.01 rad until rotation separates the two).
         max_refine_iterations: Levenberg-Marquardt iterations of the refinement.
         pixel_sigma_px: Floor of the image noise (px) assumed by the observability test (the measured
             residual RMS when larger).
@@ -73,8 +75,8 @@ class InitParams:
     still_max_disparity: float = 0.01
     min_dynamic_window_s: float = 0.5
     min_parallax: float = 0.01
-    max_scale_sigma: float = 0.02
-    max_tilt_sigma_rad: float = 0.01
+    max_scale_sigma: float = 0.01
+    max_tilt_sigma_rad: float = 0.02
     max_refine_iterations: int = 15
     pixel_sigma_px: float = 0.5
     min_depth_m: float = 0.1
@@ -270,16 +272,19 @@ class InertialInitializer:
             self.last_result = result
         return result
 
-    def _cov_diag(self, method: str, n_samples: int) -> np.ndarray:
+    def _cov_diag(
+        self, method: str, n_samples: int, tilt_sigma_rad: float = 0.0, velocity_sigma_m_s: float = 0.0
+    ) -> np.ndarray:
+        """Variances ``[dtheta, dp, dv, dbg, dba]`` (15,): the configured sigmas, at least the given ones."""
         p = self.params
         rate_hz = n_samples / self.params.window_s
         sigma_bg_mean = self.noise.gyro_noise_density_rad_s_sqrthz * np.sqrt(rate_hz) / np.sqrt(n_samples)
         sigma_v = p.sigma_velocity_static_m_s if method == "static" else p.sigma_velocity_dynamic_m_s
         sig = np.concatenate(
             [
-                np.full(3, p.sigma_tilt_rad),
+                np.full(3, max(p.sigma_tilt_rad, tilt_sigma_rad)),
                 np.full(3, p.sigma_position_m),
-                np.full(3, sigma_v),
+                np.full(3, max(sigma_v, velocity_sigma_m_s)),
                 np.full(3, max(p.sigma_gyro_bias_rad_s, sigma_bg_mean)),
                 np.full(3, p.sigma_accel_bias_m_s2),
             ]
@@ -332,7 +337,12 @@ class InertialInitializer:
             gyro_bias_rad_s=sol["bg"],
             accel_bias_m_s2=sol["ba"],
             method="dynamic",
-            cov_diag=self._cov_diag("dynamic", n_window),
+            cov_diag=self._cov_diag(
+                "dynamic",
+                n_window,
+                sol["tilt_sigma_rad"],
+                sol["scale_sigma"] * float(np.linalg.norm(v0 + g * T)),
+            ),
             gravity_norm_m_s2=sol["g_norm"],
             scale_sigma=sol["scale_sigma"],
         )
