@@ -133,15 +133,17 @@ def _truth(t: np.ndarray, excited: bool):
 
 
 def _imu_samples(t_end: float, excited: bool, bg: np.ndarray) -> list[ImuSample]:
-    """Noise-free IMU at 200 Hz; each reading is the mid-interval value of its zero-order-hold interval."""
-    dt = 1.0 / IMU_RATE_HZ
+    """Noise-free IMU at 200 Hz: instantaneous readings at the sample times.
+
+    As the IMU model and real IMUs give them; the estimators interpolate between samples.
+    """
+    dt, h = 1.0 / IMU_RATE_HZ, 1e-5
     out = []
     for t in np.arange(0.0, t_end + 1e-9, dt):
-        tm = t + 0.5 * dt
-        _, _, a, R = _truth(np.array([tm]), excited)
-        _, _, _, R0 = _truth(np.array([t]), excited)
-        _, _, _, R1 = _truth(np.array([t + dt]), excited)
-        gyro = log_so3(R0[0].T @ R1[0]) / dt  # exact rotation over the interval
+        _, _, a, R = _truth(np.array([t]), excited)
+        _, _, _, R0 = _truth(np.array([t - h]), excited)
+        _, _, _, R1 = _truth(np.array([t + h]), excited)
+        gyro = log_so3(R0[0].T @ R1[0]) / (2.0 * h)  # body rate at t (central difference)
         accel = R[0].T @ (a[0] - gravity_W())
         out.append(ImuSample(float(t), gyro + bg, accel))
     return out

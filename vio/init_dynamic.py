@@ -14,7 +14,8 @@ with ``c_k = dp_0k + dR_0k p_BC``.
 Steps of :func:`dynamic_alignment`:
 
 1. Frames (evenly subsampled) and the features tracked in enough of them.
-2. Zero-bias preintegration from the first frame to every frame and to the newest IMU sample.
+2. Zero-bias preintegration from the first frame to every frame and to the newest IMU sample (readings
+   interpolated linearly between samples, as the propagator does).
 3. The linear system, solved twice: the second time each observation's two rows are divided by the feature
    depth of the first solution, so that the residuals are normalized image errors.
 4. ``|g0|`` must be near 9.81 (VINS-Mono's ``LinearAlignment`` test; open_vins checks it as well).
@@ -53,7 +54,11 @@ Frame = tuple[float, np.ndarray, np.ndarray]
 def preintegrate_to(
     samples: list[ImuSample], times: list[float], t_end: float, noise: ImuNoise
 ) -> tuple[list[ImuPreintegration], ImuPreintegration]:
-    """Preintegrate (zero bias) from ``times[0]`` to each time and to ``t_end``, zero-order hold.
+    """Preintegrate (zero bias) from ``times[0]`` to each time and to ``t_end``.
+
+    The readings are instantaneous samples, interpolated linearly between consecutive ones (the
+    propagator's convention, :mod:`viotb.vio.propagator`): each piece between sample and target times is
+    integrated with the interpolated reading at its midpoint (held after the last sample).
 
     Args:
         samples: IMU samples in time order, covering ``[times[0], t_end]``.
@@ -69,6 +74,18 @@ def preintegrate_to(
     snapshots: dict[float, ImuPreintegration] = {targets[0]: copy.deepcopy(pim)}
     t = targets[0]
     ti = 1
+
+    def integrate(k: int, a: float, b: float) -> None:
+        s = samples[k]
+        if k + 1 < len(samples):
+            nxt = samples[k + 1]
+            u = (0.5 * (a + b) - s.t_s) / (nxt.t_s - s.t_s)
+            acc = (1.0 - u) * s.accel_B_m_s2 + u * nxt.accel_B_m_s2
+            gyro = (1.0 - u) * s.gyro_B_rad_s + u * nxt.gyro_B_rad_s
+        else:
+            acc, gyro = s.accel_B_m_s2, s.gyro_B_rad_s
+        pim.integrate(acc, gyro, b - a)
+
     for k, s in enumerate(samples):
         t_next = samples[k + 1].t_s if k + 1 < len(samples) else t_end
         if t_next <= t:
@@ -76,12 +93,12 @@ def preintegrate_to(
         start = max(s.t_s, t)
         while ti < len(targets) and targets[ti] <= t_next:
             if targets[ti] > start:
-                pim.integrate(s.accel_B_m_s2, s.gyro_B_rad_s, targets[ti] - start)
+                integrate(k, start, targets[ti])
                 start = targets[ti]
             snapshots[targets[ti]] = copy.deepcopy(pim)
             ti += 1
         if t_next > start and ti < len(targets):
-            pim.integrate(s.accel_B_m_s2, s.gyro_B_rad_s, t_next - start)
+            integrate(k, start, t_next)
         t = t_next
         if ti >= len(targets):
             break

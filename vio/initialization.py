@@ -76,7 +76,7 @@ class InitParams:
     min_dynamic_window_s: float = 0.5
     min_parallax: float = 0.01
     max_scale_sigma: float = 0.01
-    max_tilt_sigma_rad: float = 0.02
+    max_tilt_sigma_rad: float = 0.03
     max_refine_iterations: int = 15
     pixel_sigma_px: float = 0.5
     min_depth_m: float = 0.1
