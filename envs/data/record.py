@@ -213,12 +213,12 @@ def record_scenario(
 
 
 def default_start_in_motion_s(scenario: Scenario) -> float:
-    """Where ``--start-in-motion`` enters a scenario by default (s): 1.5 s after its still start ends.
+    """Where ``--start-in-motion`` enters a scenario by default (s): 2 s after its still start ends.
 
-    The motions ramp their speed up over their first 2 s, so the vehicle is moving and still accelerating
-    there (the hardest case for an initializer: no rest, little excitation yet).
+    The motions ramp their rate up over their first 2 s, so the vehicle is there at its cruise rate: moving,
+    with no rest for a static initializer.
     """
-    return scenario.still_start_s + 1.5
+    return scenario.still_start_s + 2.0
 
 
 def _trajectory(scenario: Scenario, duration_s: float, start_at_s: float | None) -> tuple[Trajectory, float]:

@@ -67,7 +67,7 @@ def record(
         None,
         "--start-at-s",
         min=0.0,
-        help="With --start-in-motion: trajectory time (s) where the recording begins (default: 1.5 s "
+        help="With --start-in-motion: trajectory time (s) where the recording begins (default: 2 s "
         "after the still start).",
     ),
     overwrite: bool = overwrite_option(),
