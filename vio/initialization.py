@@ -43,7 +43,8 @@ class InitParams:
             (normalized image coordinates) reaches this (without parallax nothing fixes the scale).
         max_scale_sigma: Accept a dynamic solution only if the relative 1-sigma of its metric scale (of the
             window's trajectory length, the accelerometer bias unknown within its prior) is at most this
-            (0.01: 1 %, so a 2 % error is a 2-sigma event).
+            (0.005: 0.5 %; the sigma counts image noise and the bias prior only, and measured errors reach
+            a few sigma, so a 2 % error stays rare).
         max_tilt_sigma_rad: ... and the 1-sigma of its gravity direction at most this (rad; the bias prior
             alone allows ``sigma_accel_bias_m_s2 / 9.81`` = 0.01 rad until rotation separates the two).
         max_refine_iterations: Levenberg-Marquardt iterations of the refinement.
@@ -75,7 +76,7 @@ class InitParams:
     still_max_disparity: float = 0.01
     min_dynamic_window_s: float = 0.5
     min_parallax: float = 0.01
-    max_scale_sigma: float = 0.01
+    max_scale_sigma: float = 0.005
     max_tilt_sigma_rad: float = 0.03
     max_refine_iterations: int = 15
     pixel_sigma_px: float = 0.5
