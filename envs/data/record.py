@@ -27,7 +27,9 @@ from pathlib import Path
 import numpy as np
 from viotb.envs.data.euroc_writer import EurocStreamWriter, write_true_calibration
 from viotb.envs.scenarios.failures import failure_record_scenario
+from viotb.envs.scenarios.motions import TimeShifted, Trajectory
 from viotb.envs.scenarios.registry import get_scenario
+from viotb.envs.scenarios.spec import Scenario
 from viotb.envs.sim.camera_timing import frame_schedule
 from viotb.envs.sim.imu_model import ImuModel
 from viotb.envs.sim.imu_model import imu_preset as imu_preset_params
@@ -38,6 +40,8 @@ from viotb.vio.types import TrajectoryArrays
 
 LANDMARK_COUNT = 3000
 """Scene landmarks written to ``sim_landmarks0`` (for the simulated-feature front end)."""
+MIN_START_SPEED_M_S = 0.05
+"""A start in motion (``start_at_s``) must find the vehicle at least this fast (m/s)."""
 IMU_CHUNK_SAMPLES = 65536
 """IMU samples simulated and written per chunk (a multiple of the IMU model's block: same bytes per seed)."""
 
@@ -55,6 +59,7 @@ def record_scenario(
     imu_rate_hz: float | None = None,
     overwrite: bool = False,
     cameras: int | None = None,
+    start_at_s: float | None = None,
 ) -> dict:
     """Simulate scenario ``name`` open loop and write a EuRoC ASL folder ``out_dir/mav0``.
 
@@ -74,10 +79,14 @@ def record_scenario(
         overwrite: Replace a non-empty ``out_dir`` when the recording completes.
         cameras: Cameras to record, 1 (``cam0``) or 2 (``cam0`` and ``cam1``, a stereo rig's scenario only);
             None = every camera of the scenario's rig.
+        start_at_s: Start in motion: the recording (IMU, images, ground truth) begins this long (s) into the
+            scenario's trajectory (its still start included) and lasts ``seconds``; the vehicle must be
+            moving there (>= :data:`MIN_START_SPEED_M_S`). None: from the start, at rest.
 
     Returns:
         ``{"frames", "imu_samples", "path_length_m", "seconds", "scenario", "seed", "realtime_factor",
-        "out", "dropped_frames", "saturated_samples", "resolution", "camera_rate_hz", "imu_rate_hz"}``.
+        "out", "dropped_frames", "saturated_samples", "resolution", "camera_rate_hz", "imu_rate_hz",
+        "start_at_s", "start_speed_m_s"}``.
 
     Raises:
         ValueError: Unknown scenario, a scenario without a scripted trajectory, a bad duration, seed, size
@@ -106,7 +115,7 @@ def record_scenario(
     if imu_rate_hz is not None:
         imu_params = replace(imu_params, rate_hz=float(imu_rate_hz))
     duration_s = float(scenario.default_seconds if seconds is None else seconds)
-    trajectory = scenario.make_trajectory(duration_s)
+    trajectory, start_speed = _trajectory(scenario, duration_s, start_at_s)
     rig_cameras = scenario.rig_cameras if cameras is None else scenario.rig_cameras[:cameras]
     if cameras is not None and (cameras not in (1, 2) or len(rig_cameras) != cameras):
         raise ValueError(
@@ -198,4 +207,32 @@ def record_scenario(
         "camera_rate_hz": float(cam_params.rate_hz),
         "imu_rate_hz": float(imu_params.rate_hz),
         "cameras": len(rig),
+        "start_at_s": float(start_at_s or 0.0),
+        "start_speed_m_s": start_speed,
     }
+
+
+def default_start_in_motion_s(scenario: Scenario) -> float:
+    """Where ``--start-in-motion`` enters a scenario by default (s): 2 s after its still start ends.
+
+    The motions ramp their rate up over their first 2 s, so the vehicle is there at its cruise rate: moving,
+    with no rest for a static initializer.
+    """
+    return scenario.still_start_s + 2.0
+
+
+def _trajectory(scenario: Scenario, duration_s: float, start_at_s: float | None) -> tuple[Trajectory, float]:
+    """The recording's trajectory and its speed at time 0 (m/s): entered at ``start_at_s`` when given."""
+    if start_at_s is None:
+        trajectory = scenario.make_trajectory(duration_s)
+        return trajectory, float(np.linalg.norm(trajectory.sample(0.0).v_WB))
+    if not (np.isfinite(start_at_s) and start_at_s >= 0.0):
+        raise ValueError(f"record_scenario: start_at_s must be >= 0 s, got {start_at_s}")
+    shifted = TimeShifted(scenario.make_trajectory(start_at_s + duration_s), float(start_at_s))
+    speed = float(np.linalg.norm(shifted.sample(0.0).v_WB))
+    if speed < MIN_START_SPEED_M_S:
+        raise ValueError(
+            f"record_scenario: {scenario.name!r} at start_at_s={start_at_s} s moves at {speed:.3f} m/s "
+            f"(< {MIN_START_SPEED_M_S} m/s): not a start in motion; choose a later start_at_s"
+        )
+    return shifted, speed

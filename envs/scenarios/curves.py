@@ -373,5 +373,41 @@ class StillStart:
         return replace(series, t_s=t.copy())
 
 
+@dataclass(frozen=True)
+class TimeShifted:
+    """``inner`` from its time ``start_s`` on, relabelled to start at 0: a recording begun mid-motion.
+
+    ``sample(t) = inner.sample(t + start_s)`` with ``t_s = t``; the duration shrinks by ``start_s``.
+
+    Attributes:
+        inner: Any trajectory (``StillStart`` included).
+        start_s: Time of ``inner`` (s) that becomes time 0, ``0 <= start_s < inner.duration_s``.
+    """
+
+    inner: Trajectory
+    start_s: float
+
+    def __post_init__(self) -> None:
+        """Check that the start lies inside ``inner``."""
+        if not (np.isfinite(self.start_s) and 0.0 <= self.start_s < self.inner.duration_s):
+            raise ValueError(
+                f"TimeShifted.start_s must lie in [0, {self.inner.duration_s:.3f}) s, got {self.start_s}"
+            )
+
+    @property
+    def duration_s(self) -> float:
+        """What is left of ``inner`` after ``start_s`` (s)."""
+        return self.inner.duration_s - self.start_s
+
+    def sample(self, t_s: float) -> TruthSample:
+        """State at ``t_s`` (s)."""
+        return replace(self.inner.sample(float(t_s) + self.start_s), t_s=float(t_s))
+
+    def sample_many(self, t_s: np.ndarray) -> TruthSeries:
+        """States at times ``t_s`` (s), shape (N,)."""
+        t = np.asarray(t_s, dtype=float)
+        return replace(self.inner.sample_many(t + self.start_s), t_s=t.copy())
+
+
 # ----------------------------------------------------------------------------------------------------------
 # The library of motions. Room: ~10 x 10 x 4 m centred at the origin; stay in |x|,|y| < 3.5, 0.5 < z < 3.

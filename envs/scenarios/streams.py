@@ -48,6 +48,9 @@ class StreamConfig:
             velocity), with an honest prior: velocity sigma ``initial_scale_error x speed`` (at least
             2 cm/s) per axis. The monitor still sees the IMU from the first sample.
         initial_scale_error: Relative scale (speed) error of that in-flight start.
+        start_at_s: Drop the first ``start_at_s`` seconds of the run (its still start included): the
+            stream begins there, moving, and lasts ``still_s + seconds - start_at_s``; the motion itself is
+            the one of ``start_at_s = 0`` (a moving start for the estimator's own initializer).
     """
 
     motion: str = "hover"
@@ -64,6 +67,7 @@ class StreamConfig:
     pixel_sigma_px: float = 0.5
     start_in_flight_s: float | None = None
     initial_scale_error: float = 0.0
+    start_at_s: float = 0.0
 
 
 @dataclass
@@ -87,13 +91,15 @@ class Stream:
 
 @dataclass(frozen=True)
 class _Delayed:
-    """Trajectory held at its first sample for ``still_s`` seconds (picklable)."""
+    """Trajectory held at its first sample for ``still_s`` seconds, entered at ``start_s`` (picklable)."""
 
     base: Trajectory
     still_s: float
+    start_s: float = 0.0
 
     def sample_many(self, t_s: np.ndarray):  # noqa: D102
-        return self.base.sample_many(np.maximum(np.asarray(t_s, dtype=float) - self.still_s, 0.0))
+        t = np.asarray(t_s, dtype=float) + self.start_s
+        return self.base.sample_many(np.maximum(t - self.still_s, 0.0))
 
 
 def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
@@ -111,6 +117,11 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
         raise ValueError(f"StreamConfig.motion: unknown motion {cfg.motion!r}; known: {known}")
     if not cfg.seconds > 0.0:
         raise ValueError(f"StreamConfig.seconds must be > 0, got {cfg.seconds}")
+    if not 0.0 <= cfg.start_at_s < cfg.seconds + cfg.still_s:
+        raise ValueError(
+            f"StreamConfig.start_at_s must lie in [0, still_s + seconds = {cfg.seconds + cfg.still_s}) s, "
+            f"got {cfg.start_at_s}"
+        )
     from viotb.envs.sim.landmarks import project_landmarks, scene_landmarks  # (imports mujoco)
     from viotb.envs.sim.render import camera_calibration
     from viotb.models import load_model
@@ -118,9 +129,11 @@ def synthesize_stream(cfg: StreamConfig, seed: int = 0) -> Stream:
 
     imu_seq, lm_seq, px_seq = np.random.SeedSequence(seed).spawn(3)
     traj = _Delayed(
-        TRAJECTORY_FACTORIES[cfg.motion](MotionParams(cfg.seconds, speed_scale=cfg.speed_scale)), cfg.still_s
+        TRAJECTORY_FACTORIES[cfg.motion](MotionParams(cfg.seconds, speed_scale=cfg.speed_scale)),
+        cfg.still_s,
+        cfg.start_at_s,
     )
-    total_s = cfg.seconds + cfg.still_s
+    total_s = cfg.seconds + cfg.still_s - cfg.start_at_s
     params = imu_preset(cfg.imu_preset)
     t_imu = np.arange(int(np.floor(total_s * params.rate_hz + 1e-9)) + 1) / params.rate_hz
     truth = traj.sample_many(t_imu)

@@ -58,6 +58,18 @@ def record(
     imu_rate: float | None = typer.Option(
         None, "--imu-rate", callback=_positive_rate, help="IMU rate (Hz; default the IMU preset's, 200)."
     ),
+    start_in_motion: bool = typer.Option(
+        False,
+        "--start-in-motion",
+        help="Begin the recording mid-trajectory, moving (ground truth from there too).",
+    ),
+    start_at: float | None = typer.Option(
+        None,
+        "--start-at-s",
+        min=0.0,
+        help="With --start-in-motion: trajectory time (s) where the recording begins (default: 2 s "
+        "after the still start).",
+    ),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
@@ -66,11 +78,20 @@ def record(
 
     Size and rates are written into cam0/sensor.yaml and imu0/sensor.yaml.
     """
-    from viotb.envs.data.record import record_scenario
+    from viotb.envs.data.record import default_start_in_motion_s, record_scenario
 
     check_seconds(seconds)
+    if start_at is not None and not start_in_motion:
+        fail("--start-at-s needs --start-in-motion")
     check_out(out, overwrite)
     try:
+        start_at_s = None
+        if start_in_motion:
+            from viotb.envs.scenarios.registry import get_scenario
+
+            start_at_s = (
+                start_at if start_at is not None else default_start_in_motion_s(get_scenario(scenario))
+            )
         with progress(f"record {scenario}", not quiet) as report:
             result = record_scenario(
                 scenario,
@@ -83,6 +104,7 @@ def record(
                 camera_rate_hz=camera_rate,
                 imu_rate_hz=imu_rate,
                 overwrite=overwrite,
+                start_at_s=start_at_s,
             )
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))

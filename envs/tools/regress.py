@@ -2,7 +2,9 @@
 
 Short set (default): in-memory open-loop streams of :mod:`viotb.envs.scenarios.failures` (hover, circle, line;
 no rendering) evaluated with the MSCKF and the simulated front end, plus one closed-loop ``fly-hover`` with
-the simulated front end. ``full`` adds a fast circle and the 60 s long loop (simulated features), and the
+the simulated front end. ``full`` adds a fast circle, the 60 s long loop (simulated features), a moving start
+(``moving-start-sim``: the stream entered mid-motion, so the MSCKF must initialize dynamically; its
+``init_time_s`` is guarded too), and the
 image path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``) and a 20
 s closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``), and the circle with the sliding-window
 optimizer (``circle-sim-window``).
@@ -42,6 +44,7 @@ TOLERANCES = {
     "scale_error_pct": {"rel": 0.10, "abs": 0.5},
     "nees_pos": {"rel": 0.25, "abs": 0.5},
     "timing_ratio": {"rel": 1.0, "abs": 0.5},
+    "init_time_s": {"rel": 0.1, "abs": 0.2},
 }
 """Default per-metric tolerances written into a new baseline."""
 
@@ -53,6 +56,7 @@ SHORT_CASES = {
 FULL_CASES = {
     "circle-fast-sim": StreamConfig(motion="circle", seconds=10.0, speed_scale=1.5, landmark_count=600),
     "long-loop-sim": StreamConfig(motion="long-loop", seconds=60.0, landmark_count=600),
+    "moving-start-sim": StreamConfig(motion="aggressive", seconds=12.0, landmark_count=600, start_at_s=4.0),
 }
 IMAGE_CASES = ("figure8-klt", "fly-hover-klt")
 """Full-set cases on rendered images."""
@@ -99,6 +103,8 @@ def _overrides(params: MsckfParams, default: object, prefix: str = "msckf") -> t
 def _stream_run(cfg: StreamConfig, seed: int, overrides: tuple, estimator: str = "msckf") -> RunConfig:
     """The sweep run of an open-loop stream case (mode ``stream``)."""
     stream = (("stream.landmark_count", cfg.landmark_count), ("stream.speed_scale", cfg.speed_scale))
+    if cfg.start_at_s:
+        stream += (("stream.start_at_s", cfg.start_at_s),)
     return RunConfig(
         scenario=cfg.motion,
         mode="stream",
@@ -113,7 +119,10 @@ def _stream_run(cfg: StreamConfig, seed: int, overrides: tuple, estimator: str =
 def _stream_case(run: RunConfig, ref_ms: float) -> dict:
     m = run_config(run)
     keys = ("ate_m", "final_err_m", "drift_pct", "scale_error_pct", "nees_pos")
-    return {**{k: m[k] for k in keys}, "timing_ratio": m["ms_per_frame"] / ref_ms, "diverged": m["diverged"]}
+    out = {**{k: m[k] for k in keys}, "timing_ratio": m["ms_per_frame"] / ref_ms, "diverged": m["diverged"]}
+    if any(name == "stream.start_at_s" for name, _ in run.params):  # a moving start: when it initialized
+        out["init_time_s"] = m["init_time_s"] if m["init_time_s"] is not None else float("inf")
+    return out
 
 
 def _recording_case(seed: int, ref_ms: float) -> dict:

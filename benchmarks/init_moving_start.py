@@ -1,0 +1,60 @@
+"""Moving-start initialization over many seeds (issue #13's benchmark): time to initialize and scale error.
+
+Each moving start of :data:`viotb.envs.run.init_check.MOVING_STARTS` (a motion of the library entered
+mid-flight, sim front end) is run with the estimator until its first estimate, for every seed, and compared
+with the truth (:func:`viotb.envs.run.init_check.check_initialization`). Prints one JSON object: the rows
+and, per motion, the initialized fraction, the delay after the first image (median, max) and the worst
+absolute scale error.
+
+Usage::
+
+    python benchmarks/init_moving_start.py --seeds 0-19
+    python benchmarks/init_moving_start.py --seeds 0-4 --estimator window
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+from viotb.envs.run.init_check import moving_start_monte_carlo
+
+
+def _seeds(text: str) -> list[int]:
+    if "-" in text:
+        a, b = text.split("-")
+        return list(range(int(a), int(b) + 1))
+    return [int(s) for s in text.split(",")]
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Per motion: ``runs``, ``initialized``, ``delay_s_median``, ``delay_s_max``, ``worst_scale_error``."""
+    out = {}
+    for motion in dict.fromkeys(r["motion"] for r in rows):
+        rs = [r for r in rows if r["motion"] == motion]
+        ok = [r for r in rs if r["t_init_s"] is not None]
+        delays = [r["delay_s"] for r in ok]
+        out[motion] = {
+            "runs": len(rs),
+            "initialized": len(ok),
+            "delay_s_median": float(np.median(delays)) if delays else None,
+            "delay_s_max": float(np.max(delays)) if delays else None,
+            "worst_scale_error": float(max(abs(r["scale_error"]) for r in ok)) if ok else None,
+            "worst_tilt_error_deg": float(max(r["tilt_error_deg"] for r in ok)) if ok else None,
+        }
+    return out
+
+
+def main() -> None:
+    """Parse the arguments, run, print JSON."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="0-4", help="e.g. 0-19 or 0,3,5")
+    ap.add_argument("--estimator", default="msckf", choices=("msckf", "window"))
+    args = ap.parse_args()
+    rows = moving_start_monte_carlo(_seeds(args.seeds), estimator=args.estimator)
+    print(json.dumps({"summary": summarize(rows), "rows": rows}, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
