@@ -1,16 +1,15 @@
 """Tests of vio/initialization.py: static init (synthetic, real EuRoC), dynamic visual-inertial alignment."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from data_paths import EUROC_MICRO
 from scipy.spatial.transform import Rotation
 from viotb.vio.camera import CameraCalibration, PinholeCamera
 from viotb.vio.initialization import InertialInitializer, InitParams, rotation_from_gravity
 from viotb.vio.lie import log_so3, quat_wxyz_to_rotmat
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample, gravity_W
 
-EUROC = Path("/work/shared/data/euroc_v1_01_micro/mav0")
+EUROC = EUROC_MICRO / "mav0"
 IMU_RATE_HZ = 200.0
 CAM_RATE_HZ = 20.0
 # Camera looks along body +x: x_C = -y_B, y_C = -z_B, z_C = +x_B.
