@@ -257,7 +257,8 @@ class LoopCloser:
             self._localized.add(kf.sequence)
         for c in accepted:
             meas = loop_4dof(c.match.R_WB_odom, c.verified.T_match_query, self.heading_axis_B)
-            self.graph.add_edge(Edge4Dof(c.match.index, c.query.index, *meas, is_loop=True))
+            to_map = c.match.sequence < self._first_own_sequence
+            self.graph.add_edge(Edge4Dof(c.match.index, c.query.index, *meas, is_loop=True, to_map=to_map))
         self.last_solve = self.graph.optimize()
         self._path_at_anchor_m = self._path_m
         for k in self.db.keyframes:

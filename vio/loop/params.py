@@ -140,10 +140,16 @@ class PoseGraphParams:
     """4-DOF pose graph (x, y, z, yaw) solved with gtsam.
 
     Attributes:
-        odometry_sigma_translation_m: Translation sigma of one odometry edge (m).
-        odometry_sigma_yaw_rad: Yaw sigma of one odometry edge (rad).
+        odometry_sigma_translation_m: Translation sigma of one odometry edge (m), before the part that grows
+            with the edge's length.
+        odometry_sigma_translation_per_m: Added to it per metre of the edge (m/m): odometry drifts with the
+            distance travelled, so a long edge is weaker than a short one.
+        odometry_sigma_yaw_rad: Yaw sigma of one odometry edge (rad), before the part that grows with length.
+        odometry_sigma_yaw_rad_per_m: Added to it per metre of the edge (rad/m).
         loop_sigma_translation_m: Translation sigma of a loop edge (m).
         loop_sigma_yaw_rad: Yaw sigma of a loop edge (rad).
+        map_loop_sigma_translation_m: Translation sigma of a loop edge to a keyframe of a loaded map (m).
+        map_loop_sigma_yaw_rad: Yaw sigma of such an edge (rad).
         tilt_sigma_rad: Sigma of roll and pitch in every edge (rad); tiny, it freezes them (4-DOF emulation).
         anchor_sigma: Sigma of the prior holding fixed nodes (rad and m).
         robust_kernel: ``"huber"`` (default, as VINS-Mono; convex, so a loop far off at the initial values
@@ -153,9 +159,13 @@ class PoseGraphParams:
     """
 
     odometry_sigma_translation_m: float = 0.02
+    odometry_sigma_translation_per_m: float = 0.0
     odometry_sigma_yaw_rad: float = 0.005
+    odometry_sigma_yaw_rad_per_m: float = 0.0
     loop_sigma_translation_m: float = 0.05
     loop_sigma_yaw_rad: float = 0.02
+    map_loop_sigma_translation_m: float = 0.05
+    map_loop_sigma_yaw_rad: float = 0.02
     tilt_sigma_rad: float = 1e-4
     anchor_sigma: float = 1e-6
     robust_kernel: str = "huber"
