@@ -149,6 +149,11 @@ class PoseGraphParams:
         loop_sigma_translation_m: Translation sigma of a loop edge (m).
         loop_sigma_yaw_rad: Yaw sigma of a loop edge (rad).
         map_loop_sigma_translation_m: Translation sigma of a loop edge to a keyframe of a loaded map (m).
+            The loaded map is fixed (it is the frame the run must agree with), so the PnP pose against it is
+            the whole information and is weighted by its own accuracy (closures against the truth: median
+            1 cm, 90 % within 2 cm on long-loop); within a run both ends move and a looser sigma spreads
+            the misclosure. On long-loop (seed 0's map, seed 1 in it) 1.5 cm instead of 5 cm took the
+            frames within 3 cm of the map from 94 % to 97 %.
         map_loop_sigma_yaw_rad: Yaw sigma of such an edge (rad).
         tilt_sigma_rad: Sigma of roll and pitch in every edge (rad); tiny, it freezes them (4-DOF emulation).
         anchor_sigma: Sigma of the prior holding fixed nodes (rad and m).
@@ -164,8 +169,8 @@ class PoseGraphParams:
     odometry_sigma_yaw_rad_per_m: float = 0.0
     loop_sigma_translation_m: float = 0.05
     loop_sigma_yaw_rad: float = 0.02
-    map_loop_sigma_translation_m: float = 0.05
-    map_loop_sigma_yaw_rad: float = 0.02
+    map_loop_sigma_translation_m: float = 0.015
+    map_loop_sigma_yaw_rad: float = 0.005
     tilt_sigma_rad: float = 1e-4
     anchor_sigma: float = 1e-6
     robust_kernel: str = "huber"
