@@ -142,7 +142,7 @@ def main() -> None:
     ratios = [r["ate_posyaw_m"] / r["ate_posyaw_odometry_m"] for r in rows if r["ate_posyaw_odometry_m"]]
     summary = {
         "scenario": name,
-        "frontend": args.frontend,
+        "frontend": "as kept (--reclose)" if args.reclose else args.frontend,
         "seeds": len(rows),
         "closures": sum(r["closures"] for r in rows),
         "false_closures": sum(r["false_closures"] for r in rows),

@@ -190,6 +190,10 @@ class LoopCloser:
             )
             if verdict.pose is None:
                 continue
+            # An ill-conditioned pose is refused where the sequence has other loops to come (a relocalization
+            # has none yet and relies on the confirmation).
+            if self.localized and verdict.pose.yaw_sigma_deg > self.params.verification.max_yaw_sigma_deg:
+                continue
             cand = make_candidate(kf, match, verdict.pose, self.heading_axis_B)
             if self.localized:
                 predicted = RigidTransform(*self.blender.target.apply_pose(kf.R_WB_odom, kf.p_WB_odom))
