@@ -157,6 +157,10 @@ def test_new_run_with_a_loaded_map_localizes_into_the_map_frame(first_run, scene
     R, p = second.corrected_pose(t_s + 2.0, odom.R, odom.p)  # after the blend
     err_m, err_deg = _err(RigidTransform(R, p), truth)
     assert err_m < 0.15 and err_deg < 3.0  # measured 0.15 m / 2.1 deg
+    # Loop edges onto the map's (fixed) keyframes carry the map-loop sigmas; the map's own edges do not.
+    n_map = len(closer.db)
+    loops = [e for e in second.graph.edges if e.is_loop]
+    assert loops and all(e.to_map == (e.i < n_map) for e in loops)
 
 
 def test_relocalization_after_a_blackout_while_moving(scene):

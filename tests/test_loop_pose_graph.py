@@ -29,6 +29,32 @@ def test_chain_with_loop_matches_weighted_least_squares_closed_form():
     np.testing.assert_allclose(graph.node(0)[1], 0.0, atol=1e-7)
 
 
+@pytest.mark.parametrize("to_map", [False, True])
+def test_misclosure_spreads_in_proportion_to_length_grown_and_map_loop_variances(to_map):
+    # x0 = 0 fixed; odometry edges of 1 m and 2 m, the loop 0 -> 2 says 2.7 m. Each edge absorbs the 0.3 m
+    # misclosure in proportion to its variance, s_k = s0 + rate * length_k for odometry, the loop's own
+    # (map-loop sigma for a loop to a loaded map's keyframe).
+    params = PoseGraphParams(
+        robust_kernel="none",
+        odometry_sigma_translation_m=0.01,
+        odometry_sigma_translation_per_m=0.02,
+        loop_sigma_translation_m=0.05,
+        map_loop_sigma_translation_m=0.015,
+    )
+    graph = PoseGraph4Dof(params)
+    for k, x in enumerate((0.0, 1.0, 3.0)):
+        graph.add_node(k, 0.0, np.array([x, 0.0, 0.0]), fixed=(k == 0))
+    graph.add_edge(Edge4Dof(0, 1, 0.0, np.array([1.0, 0.0, 0.0])))
+    graph.add_edge(Edge4Dof(1, 2, 0.0, np.array([2.0, 0.0, 0.0])))
+    graph.add_edge(Edge4Dof(0, 2, 0.0, np.array([2.7, 0.0, 0.0]), is_loop=True, to_map=to_map))
+    graph.optimize()
+    var = np.array([0.01 + 0.02 * 1.0, 0.01 + 0.02 * 2.0, 0.015 if to_map else 0.05]) ** 2
+    x1 = 1.0 - 0.3 * var[0] / var.sum()
+    x2 = x1 + 2.0 - 0.3 * var[1] / var.sum()
+    np.testing.assert_allclose(graph.node(1)[1], [x1, 0.0, 0.0], atol=1e-7)
+    np.testing.assert_allclose(graph.node(2)[1], [x2, 0.0, 0.0], atol=1e-7)
+
+
 def test_yaw_cycle_spreads_misclosure_in_proportion_to_variances():
     # Four nodes turning in place by pi/2 + delta per edge, the last edge a loop: the 4 delta misclosure is
     # absorbed by each edge in proportion to its variance: increment_k = m_k - 4 delta s_k^2 / sum(s^2).

@@ -190,6 +190,10 @@ class LoopCloser:
             )
             if verdict.pose is None:
                 continue
+            # An ill-conditioned pose is refused where the sequence has other loops to come (a relocalization
+            # has none yet and relies on the confirmation).
+            if self.localized and verdict.pose.yaw_sigma_deg > self.params.verification.max_yaw_sigma_deg:
+                continue
             cand = make_candidate(kf, match, verdict.pose, self.heading_axis_B)
             if self.localized:
                 predicted = RigidTransform(*self.blender.target.apply_pose(kf.R_WB_odom, kf.p_WB_odom))
@@ -257,7 +261,8 @@ class LoopCloser:
             self._localized.add(kf.sequence)
         for c in accepted:
             meas = loop_4dof(c.match.R_WB_odom, c.verified.T_match_query, self.heading_axis_B)
-            self.graph.add_edge(Edge4Dof(c.match.index, c.query.index, *meas, is_loop=True))
+            to_map = c.match.sequence < self._first_own_sequence
+            self.graph.add_edge(Edge4Dof(c.match.index, c.query.index, *meas, is_loop=True, to_map=to_map))
         self.last_solve = self.graph.optimize()
         self._path_at_anchor_m = self._path_m
         for k in self.db.keyframes:

@@ -34,6 +34,7 @@ class Edge4Dof:
         dyaw_rad: ``yaw_j - yaw_i`` (rad).
         dp_m: ``Rz(yaw_i)^T (p_j - p_i)`` (m), shape (3,).
         is_loop: Loop edge (robust kernel, loop sigmas) or odometry edge.
+        to_map: A loop edge to a keyframe of a loaded (fixed) map, with the map-loop sigmas.
     """
 
     i: int
@@ -41,6 +42,7 @@ class Edge4Dof:
     dyaw_rad: float
     dp_m: np.ndarray
     is_loop: bool = False
+    to_map: bool = False
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,7 @@ class PoseGraph4Dof:
         self.edges: list[Edge4Dof] = []
         self._graph = gtsam.NonlinearFactorGraph()  # grown with each node and edge, not rebuilt per solve
         self._noise_models = {False: self._noise(False), True: self._noise(True)}
+        self._map_noise = self._noise(True, to_map=True)
         self._anchor = gtsam.noiseModel.Isotropic.Sigma(6, self.params.anchor_sigma)
 
     def __contains__(self, key: int) -> bool:
@@ -110,15 +113,32 @@ class PoseGraph4Dof:
                 raise KeyError(f"pose graph has no node {key}")
         self.edges.append(edge)
         measured = gtsam.Pose3(gtsam.Rot3(rotz(edge.dyaw_rad)), np.asarray(edge.dp_m, dtype=float))
-        self._graph.add(gtsam.BetweenFactorPose3(edge.i, edge.j, measured, self._noise_models[edge.is_loop]))
+        self._graph.add(gtsam.BetweenFactorPose3(edge.i, edge.j, measured, self._edge_noise(edge)))
 
     def node(self, key: int) -> tuple[float, np.ndarray]:
         """Current ``(yaw_rad, p_W)`` of a node."""
         return self._yaw_rad[key], self._p_W[key].copy()
 
-    def _noise(self, is_loop: bool):
+    def _edge_noise(self, edge: Edge4Dof):
+        """The edge's noise model: the shared one, or an odometry edge's that grows with its length."""
         pg = self.params
-        if is_loop:
+        per_m = (pg.odometry_sigma_translation_per_m, pg.odometry_sigma_yaw_rad_per_m)
+        if edge.is_loop and edge.to_map:
+            return self._map_noise
+        if edge.is_loop or per_m == (0.0, 0.0):
+            return self._noise_models[edge.is_loop]
+        length_m = float(np.linalg.norm(edge.dp_m))
+        s_t = pg.odometry_sigma_translation_m + per_m[0] * length_m
+        s_yaw = pg.odometry_sigma_yaw_rad + per_m[1] * length_m
+        return gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([pg.tilt_sigma_rad, pg.tilt_sigma_rad, s_yaw, s_t, s_t, s_t])
+        )
+
+    def _noise(self, is_loop: bool, to_map: bool = False):
+        pg = self.params
+        if to_map:
+            s_t, s_yaw = pg.map_loop_sigma_translation_m, pg.map_loop_sigma_yaw_rad
+        elif is_loop:
             s_t, s_yaw = pg.loop_sigma_translation_m, pg.loop_sigma_yaw_rad
         else:
             s_t, s_yaw = pg.odometry_sigma_translation_m, pg.odometry_sigma_yaw_rad

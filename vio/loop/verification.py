@@ -32,12 +32,17 @@ class VerifiedPose:
         inliers: PnP inliers.
         matches: Descriptor matches to landmarks tried.
         rms_px: RMS reprojection error of the inliers after refinement (px).
+        yaw_sigma_deg: Standard deviation of the query's heading about world z that the inliers' geometry
+            and ``rms_px`` give (``pnp_sigmas``, deg).
+        translation_sigma_m: Largest standard deviation of the query's position (m).
     """
 
     T_match_query: RigidTransform
     inliers: int
     matches: int
     rms_px: float
+    yaw_sigma_deg: float = 0.0
+    translation_sigma_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -51,6 +56,35 @@ class Verdict:
 
     pose: VerifiedPose | None
     reason: str
+
+
+def pnp_sigmas(p_C: np.ndarray, sigma_norm: float, z_C: np.ndarray) -> tuple[float, float]:
+    """Heading and position standard deviations of a PnP pose from its inliers' geometry.
+
+    Gauss-Newton covariance ``sigma^2 (J^T J)^-1`` of the camera pose under a perturbation
+    ``p_C' = Exp(dtheta) p_C + dt`` of the inliers' camera-frame points, with ``J`` the Jacobian of their
+    normalized projections: a view whose depths barely vary lets a rotation trade with a translation, which
+    shows here as large sigmas even when the reprojection error is small.
+
+    Args:
+        p_C: Inlier landmarks in the query camera frame (m), shape (N, 3), positive depth.
+        sigma_norm: Reprojection noise in normalized coordinates (px / focal length).
+        z_C: World up expressed in the query camera frame, shape (3,) unit.
+
+    Returns:
+        ``(sigma about world z (rad), largest position sigma (m))``.
+    """
+    x, y, z = p_C[:, 0], p_C[:, 1], p_C[:, 2]
+    d_proj = np.zeros((len(p_C), 2, 3))
+    d_proj[:, 0, 0] = d_proj[:, 1, 1] = 1.0 / z
+    d_proj[:, 0, 2], d_proj[:, 1, 2] = -x / z**2, -y / z**2
+    skew = np.zeros((len(p_C), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -z, y, -x
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = z, -y, x
+    J = np.concatenate([-d_proj @ skew, d_proj], axis=2).reshape(-1, 6)  # d proj / d(dtheta, dt)
+    cov = sigma_norm**2 * np.linalg.pinv(J.T @ J)
+    yaw_var = float(z_C @ cov[:3, :3] @ z_C)
+    return float(np.sqrt(max(yaw_var, 0.0))), float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
 
 
 def verify_candidate(
@@ -125,4 +159,7 @@ def verify_candidate(
     tilt = tilt_error_rad(match.R_WB_odom @ T_mq.R, R_WBq_odom)
     if np.rad2deg(tilt) > params.max_tilt_error_deg:
         return Verdict(None, "tilt")
-    return Verdict(VerifiedPose(T_mq, len(inliers), len(iq), rms_px), "ok")
+    z_C = (R_WBq_odom @ calib.R_BC).T @ np.array([0.0, 0.0, 1.0])
+    yaw_sigma_rad, t_sigma_m = pnp_sigmas(p_C[inliers], max(rms_px, 0.5) / f_px, z_C)
+    verified = VerifiedPose(T_mq, len(inliers), len(iq), rms_px, float(np.rad2deg(yaw_sigma_rad)), t_sigma_m)
+    return Verdict(verified, "ok")
