@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from data_paths import EUROC_MICRO
 from scipy.spatial.transform import Rotation
 from viotb.envs.data.euroc import load_image, read_euroc
 from viotb.vio.lie import log_so3, rotz
@@ -24,7 +24,7 @@ from viotb.vio.loop import LoopCloser, LoopClosureParams, PlaceRecognitionParams
 from viotb.vio.loop.bow import train_vocabulary
 from viotb.vio.loop.map_io import MAP_KEYS, read_map_arrays
 
-MICRO = Path("/work/shared/data/euroc_v1_01_micro")
+MICRO = EUROC_MICRO
 pytestmark = pytest.mark.skipif(not MICRO.is_dir(), reason="EuRoC micro set not present")
 PERIOD_S, RATE_HZ, DEPTH_M, NEAR_DEPTH_M = 8.0, 10.0, 3.0, 1.8
 R_WC0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera looks along world +x

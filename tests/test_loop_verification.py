@@ -9,11 +9,11 @@ exactly the image a camera moved by ``(R, t)`` would see of the texture on a pla
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from data_paths import EUROC_MICRO
 from viotb.envs.data.euroc import load_image, read_euroc
 from viotb.vio.lie import exp_so3, log_so3, quat_wxyz_to_rotmat, rotz
 from viotb.vio.loop.frames import RigidTransform
@@ -21,7 +21,7 @@ from viotb.vio.loop.keyframes import Keyframe, KeyframeDatabase
 from viotb.vio.loop.params import KeyframeParams, VerificationParams
 from viotb.vio.loop.verification import verify_candidate
 
-MICRO = Path("/work/shared/data/euroc_v1_01_micro")
+MICRO = EUROC_MICRO
 pytestmark = pytest.mark.skipif(not MICRO.is_dir(), reason="EuRoC micro set not present")
 KP = KeyframeParams(orb_n_features=1000)  # EuRoC's 752x480 (the default 500 is sized for 320x240 renders)
 
