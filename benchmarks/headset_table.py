@@ -19,23 +19,11 @@ import argparse
 import numpy as np
 from scipy.stats import chi2
 from viotb.envs.run.headset import HeadsetOptions, run_headset
-from viotb.envs.run.headset_report import headset_result
+from viotb.envs.run.headset_report import METRIC_KEYS, headset_result
 from viotb.envs.scenarios.head_catalog import head_scenarios
 from viotb.envs.tools.jsonout import dumps_strict
 
-COLUMNS = (
-    "jitter_pos_mm",
-    "jitter_rot_deg",
-    "world_lock_ate_mm",
-    "max_err_mm",
-    "pred_err_pos_mm_p95",
-    "pred_err_rot_deg_p95",
-    "drift_pct",
-    "nees_pos_mean",
-    "ms_per_frame_median",
-    "ms_per_frame_p99",
-    "pose_rate_hz",
-)
+COLUMNS = (*METRIC_KEYS, "nees_pos_mean", "ms_per_frame_median", "ms_per_frame_p99")
 
 
 def _seeds(text: str) -> list[int]:

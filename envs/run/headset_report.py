@@ -29,6 +29,18 @@ def prediction_relative_to_truth(run: HeadsetRun) -> tuple[np.ndarray, np.ndarra
     return R_fix @ run.R_pred, run.p_pred - (run.p_disp[:m] - run.p_true[:m])
 
 
+METRIC_KEYS = (
+    "jitter_pos_mm",
+    "jitter_rot_deg",
+    "world_lock_ate_mm",
+    "max_err_mm",
+    "pred_err_pos_mm_p95",
+    "pred_err_rot_deg_p95",
+    "pose_rate_hz",
+    "drift_pct",
+)
+"""Display-pose metrics (:func:`viotb.vio.headset_metrics.headset_metrics`) the result carries."""
+
 ESTIMATOR_KEYS = ("jitter_pos_mm", "jitter_rot_deg", "world_lock_ate_mm", "max_err_mm")
 """Metrics also reported (prefixed ``estimator_``) for the estimator's own pose, before the display filter."""
 
@@ -60,16 +72,7 @@ def headset_result(run: HeadsetRun, params: HeadsetMetricParams | None = None) -
         "realtime_factor": float((run.t_s[-1] - run.t_s[0]) / run.wall_s) if len(run.t_s) > 1 else 0.0,
     }
     notes: dict[str, str] = {}
-    keys = (
-        "jitter_pos_mm",
-        "jitter_rot_deg",
-        "world_lock_ate_mm",
-        "max_err_mm",
-        "pred_err_pos_mm_p95",
-        "pred_err_rot_deg_p95",
-        "pose_rate_hz",
-        "drift_pct",
-    )
+    keys = METRIC_KEYS
     if len(run.t_s) >= 10:
         m = len(run.t_pred_s)
         R_pc, p_pc = prediction_relative_to_truth(run)
