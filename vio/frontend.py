@@ -202,11 +202,14 @@ class KltTracker:
         lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels}
         p0 = self._prev_pts.reshape(-1, 1, 2)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, None, **lk)
-        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1, None, **lk)
         p1 = p1.reshape(-1, 2)
-        fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts, axis=1)
-        good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_error_px)
-        good &= self.camera.in_image(p1.astype(float), p.border_px)
+        # Backward pass only for the points the forward pass kept (LK tracks each point on its own).
+        good = (st1.ravel() == 1) & self.camera.in_image(p1.astype(float), p.border_px)
+        fwd = np.flatnonzero(good)
+        if len(fwd):
+            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1[fwd].reshape(-1, 1, 2), None, **lk)
+            fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts[fwd], axis=1)
+            good[fwd] = (st2.ravel() == 1) & (fb < p.fb_max_error_px)
         pts, ids, prev = p1[good], self._prev_ids[good], self._prev_pts[good]
         if len(pts) >= 8:
             a = self.undistort(prev) * self._focal_px
