@@ -229,8 +229,7 @@ class KltTracker:
         kps = self._fast.detect(img, None)
         if not kps:
             return np.zeros((0, 2), dtype=np.float32)
-        cand = np.array([kp.pt for kp in kps], dtype=np.float32)
-        resp = np.array([kp.response for kp in kps], dtype=np.float32)
+        cand = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
         h, w = img.shape
         inside = self.camera.in_image(cand.astype(float), p.border_px + 4)
         # Occupancy at min_distance resolution: reject candidates whose cell (or a neighbour) holds a feature.
@@ -245,8 +244,10 @@ class KltTracker:
                     occ[cj + dj, ci + di] = True
         ki = np.clip((cand[:, 0] / cell).astype(int) + 1, 0, gw - 1)
         kj = np.clip((cand[:, 1] / cell).astype(int) + 1, 0, gh - 1)
-        ok = inside & ~occ[kj, ki]
-        cand, resp, ki, kj = cand[ok], resp[ok], ki[ok], kj[ok]
+        ok = np.flatnonzero(inside & ~occ[kj, ki])
+        cand, ki, kj = cand[ok], ki[ok], kj[ok]
+        # Responses only of the candidates kept (reading a KeyPoint costs a Python call each).
+        resp = np.fromiter((kps[i].response for i in ok), dtype=np.float32, count=len(ok))
         if len(cand) == 0:
             return np.zeros((0, 2), dtype=np.float32)
         # One corner per occupancy cell (the strongest), then a per-bucket quota.

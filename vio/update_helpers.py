@@ -175,12 +175,12 @@ def clone_unobservable_basis(R_WB: np.ndarray, p_WB: np.ndarray, offsets: np.nda
     Returns:
         ``U`` of shape (dim, 4): columns x, y, z translation and yaw.
     """
-    e_z = np.array([0.0, 0.0, 1.0])
+    o = np.asarray(offsets, dtype=int)[:, None] + np.arange(3)  # (K, 3) rows of each dtheta block
     U = np.zeros((dim, 4))
-    for k, o in enumerate(np.asarray(offsets, dtype=int)):
-        U[o + 3 : o + 6, 0:3] = np.eye(3)
-        U[o : o + 3, 3] = R_WB[k].T @ e_z
-        U[o + 3 : o + 6, 3] = np.cross(e_z, p_WB[k])
+    U[o + 3, np.arange(3)] = 1.0  # dp = t
+    U[o, 3] = np.asarray(R_WB)[:, 2, :]  # R_k^T e_z: the last row of R_k
+    p = np.asarray(p_WB)
+    U[o + 3, 3] = np.stack([-p[:, 1], p[:, 0], np.zeros(len(p))], axis=1)  # e_z x p_k
     return U
 
 
