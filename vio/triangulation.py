@@ -111,8 +111,12 @@ def triangulate(
     # 1. Anchor = first view of each feature.
     anchor = np.argmax(mask, axis=1)
     R_WA, p_WA = R_WC[anchor], p_WC[anchor]
-    R_AC = np.einsum("fji,kjl->fkil", R_WA, R_WC)
-    p_AC = np.einsum("fji,fkj->fki", R_WA, p_WC[None, :, :] - p_WA[:, None, :])
+    # R_AC = R_WA^T R_WC and p_AC = R_WA^T (p_WC - p_WA) for every (feature, view), as one product each.
+    R_AW_rows = np.swapaxes(R_WA, 1, 2).reshape(F * 3, 3)
+    R_AC = (R_AW_rows @ R_WC.transpose(1, 0, 2).reshape(3, K * 3)).reshape(F, 3, K, 3).transpose(0, 2, 1, 3)
+    p_AC = (R_AW_rows @ p_WC.T).reshape(F, 3, K).transpose(0, 2, 1) - np.einsum("fji,fj->fi", R_WA, p_WA)[
+        :, None
+    ]
     # 2. Linear midpoint start.
     b = np.einsum("fkij,fkj->fki", R_AC, np.concatenate([xy, np.ones((F, K, 1))], axis=2))
     b /= np.linalg.norm(b, axis=2, keepdims=True)
@@ -122,7 +126,7 @@ def triangulate(
     U, S, Vt = np.linalg.svd(A)
     cond = S[:, 0] / np.maximum(S[:, 2], 1e-300)
     S_inv = np.where(S > S[:, :1] * 1e-12, 1.0 / np.maximum(S, 1e-300), 0.0)
-    p_A = np.einsum("fji,fj,fkj,fk->fi", Vt, S_inv, U, rhs)
+    p_A = np.einsum("fji,fj->fi", Vt, S_inv * np.einsum("fkj,fk->fj", U, rhs))  # V S^+ U^T rhs
     z0 = np.where(p_A[:, 2] > 1e-6, p_A[:, 2], 1.0)
     x = np.stack([p_A[:, 0] / z0, p_A[:, 1] / z0, 1.0 / z0], axis=1)
     # 3. Levenberg-Marquardt on inverse depth, one damping per feature. ``h`` is affine in
