@@ -72,6 +72,17 @@ class TriangulationResult:
     condition_number: np.ndarray
 
 
+def _project_inverse_depth(
+    params: np.ndarray, R_CA: np.ndarray, p_AC: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``h_k = R_CA_k ([alpha, beta, 1] - rho p_AC_k)`` (F, K, 3) and normalized ``z_hat`` (F, K, 2)."""
+    m = np.stack([params[:, 0], params[:, 1], np.ones(len(params))], axis=1)
+    d = m[:, None, :] - params[:, 2, None, None] * p_AC
+    h = np.einsum("fkij,fkj->fki", R_CA, d)
+    z = h[..., :2] / np.where(np.abs(h[..., 2:3]) < 1e-12, 1e-12, h[..., 2:3])
+    return h, z
+
+
 def triangulate(
     R_WC: np.ndarray,
     p_WC: np.ndarray,
@@ -111,12 +122,8 @@ def triangulate(
     # 1. Anchor = first view of each feature.
     anchor = np.argmax(mask, axis=1)
     R_WA, p_WA = R_WC[anchor], p_WC[anchor]
-    # R_AC = R_WA^T R_WC and p_AC = R_WA^T (p_WC - p_WA) for every (feature, view), as one product each.
-    R_AW_rows = np.swapaxes(R_WA, 1, 2).reshape(F * 3, 3)
-    R_AC = (R_AW_rows @ R_WC.transpose(1, 0, 2).reshape(3, K * 3)).reshape(F, 3, K, 3).transpose(0, 2, 1, 3)
-    p_AC = (R_AW_rows @ p_WC.T).reshape(F, 3, K).transpose(0, 2, 1) - np.einsum("fji,fj->fi", R_WA, p_WA)[
-        :, None
-    ]
+    R_AC = np.einsum("fji,kjl->fkil", R_WA, R_WC)
+    p_AC = np.einsum("fji,fkj->fki", R_WA, p_WC[None, :, :] - p_WA[:, None, :])
     # 2. Linear midpoint start.
     b = np.einsum("fkij,fkj->fki", R_AC, np.concatenate([xy, np.ones((F, K, 1))], axis=2))
     b /= np.linalg.norm(b, axis=2, keepdims=True)
@@ -126,40 +133,35 @@ def triangulate(
     U, S, Vt = np.linalg.svd(A)
     cond = S[:, 0] / np.maximum(S[:, 2], 1e-300)
     S_inv = np.where(S > S[:, :1] * 1e-12, 1.0 / np.maximum(S, 1e-300), 0.0)
-    p_A = np.einsum("fji,fj->fi", Vt, S_inv * np.einsum("fkj,fk->fj", U, rhs))  # V S^+ U^T rhs
+    p_A = np.einsum("fji,fj,fkj,fk->fi", Vt, S_inv, U, rhs)
     z0 = np.where(p_A[:, 2] > 1e-6, p_A[:, 2], 1.0)
     x = np.stack([p_A[:, 0] / z0, p_A[:, 1] / z0, 1.0 / z0], axis=1)
-    # 3. Levenberg-Marquardt on inverse depth, one damping per feature. ``h`` is affine in
-    #    x = (alpha, beta, rho): h = D x + R_CA[:, 2] with D = [R_CA e_1, R_CA e_2, -R_CA p_AC], so D is the
-    #    (iteration-invariant) Jacobian dh/dx.
+    # 3. Levenberg-Marquardt on inverse depth, one damping per feature.
     R_CA = np.swapaxes(R_AC, 2, 3)
-    D = np.concatenate([R_CA[..., :, 0:2], -(R_CA @ p_AC[..., None])], axis=3)  # (F, K, 3, 3)
-    c = R_CA[..., :, 2]
-    D0, D1, D2 = (np.ascontiguousarray(D[..., j]) for j in range(3))  # columns, each (F, K, 3)
-    Dw = D * w[..., None, None]  # masked views drop out of J
-    Dw_xy, Dw_z = Dw[..., :2, :], Dw[..., 2:3, :]
-    xy_w = xy * w[..., None]
 
-    def cost_of(x_: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        h_ = D0 * x_[:, None, 0:1] + D1 * x_[:, None, 1:2] + D2 * x_[:, None, 2:3] + c
-        inv_z_ = 1.0 / np.where(np.abs(h_[..., 2:3]) < 1e-12, 1e-12, h_[..., 2:3])
-        e_ = h_[..., :2] * inv_z_ * w[..., None] - xy_w
+    def cost_of(params_: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        h_, z_ = _project_inverse_depth(params_, R_CA, p_AC)
+        e_ = (z_ - xy) * w[..., None]
         return h_, e_, np.einsum("fki,fki->f", e_, e_)
 
     h, e, cost = cost_of(x)
     lam = np.full(F, p.initial_damping)
-    eye3 = np.eye(3)
     for _ in range(p.max_iterations):
-        inv_z = 1.0 / np.where(np.abs(h[..., 2:3]) < 1e-12, 1e-12, h[..., 2:3])  # (F, K, 1)
-        zxy = h[..., :2] * inv_z
-        # J = dz/dh D with dz/dh = 1/Z [[1, 0, -x], [0, 1, -y]]; rows (F, K, 2, 3) flattened to (F, 2K, 3).
-        J = (inv_z[..., None] * (Dw_xy - zxy[..., None] * Dw_z)).reshape(F, 2 * K, 3)
-        Jt = np.swapaxes(J, 1, 2)
-        JtJ = Jt @ J
-        Jte = (Jt @ e.reshape(F, 2 * K, 1))[..., 0]
+        inv_z = 1.0 / np.where(np.abs(h[..., 2]) < 1e-12, 1e-12, h[..., 2])
+        zx, zy = h[..., 0] * inv_z, h[..., 1] * inv_z
+        dz_dh = np.zeros((F, K, 2, 3))
+        dz_dh[..., 0, 0] = inv_z
+        dz_dh[..., 1, 1] = inv_z
+        dz_dh[..., 0, 2] = -zx * inv_z
+        dz_dh[..., 1, 2] = -zy * inv_z
+        dh_dx = np.concatenate([R_CA[..., :, 0:1], R_CA[..., :, 1:2], -(R_CA @ p_AC[..., None])], axis=3)
+        J = (dz_dh @ dh_dx) * w[..., None, None]
+        JtJ = np.einsum("fkia,fkib->fab", J, J)
+        Jte = np.einsum("fkia,fki->fa", J, e)
         diag = np.diagonal(JtJ, axis1=1, axis2=2)[:, None, :]
-        damp = JtJ + lam[:, None, None] * (eye3 * diag + 1e-12 * eye3)
-        x_new = x - np.linalg.solve(damp, Jte[..., None])[..., 0]
+        damp = JtJ + lam[:, None, None] * (np.eye(3) * diag + 1e-12 * np.eye(3))
+        dx = -np.linalg.solve(damp, Jte[..., None])[..., 0]
+        x_new = x + dx
         h_new, e_new, cost_new = cost_of(x_new)
         better = (cost_new < cost) & np.all(np.isfinite(x_new), axis=1)
         x = np.where(better[:, None], x_new, x)
