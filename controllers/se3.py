@@ -136,6 +136,14 @@ class SE3Controller:
         self._mixer = mixer if mixer is not None else Mixer(vehicle)
         self._integral_m_s = np.zeros(3)
         self._last_t_s: float | None = None
+        # Constants of the gains, built once instead of at every update (the gains are frozen).
+        ki = self._gains.ki_N_m_s
+        limit = np.full(3, np.inf)
+        np.divide(self._gains.integral_limit_N, ki, out=limit, where=ki > 0.0)
+        self._integral_limit_m_s = limit
+        self._neg_integral_limit_m_s = -limit
+        self._tan_max_tilt = np.tan(self._gains.max_tilt_rad)
+        self._min_thrust_N = self._gains.min_thrust_fraction * self._vehicle.hover_thrust_N
 
     @property
     def gains(self) -> SE3Gains:
@@ -198,10 +206,9 @@ class SE3Controller:
             if 0.0 < dt <= _MAX_INTEGRATION_STEP_S:
                 self._integral_m_s = self._integral_m_s + e_p * dt
         self._last_t_s = float(t_s)
-        ki = self._gains.ki_N_m_s
-        limit = np.full(3, np.inf)
-        np.divide(self._gains.integral_limit_N, ki, out=limit, where=ki > 0.0)
-        self._integral_m_s = np.clip(self._integral_m_s, -limit, limit)
+        self._integral_m_s = np.clip(
+            self._integral_m_s, self._neg_integral_limit_m_s, self._integral_limit_m_s
+        )
 
     def _integral_force_N(self) -> np.ndarray:
         """Integral force ``k_i int(e_p)`` (N), shape (3,)."""
@@ -210,9 +217,9 @@ class SE3Controller:
     def _limit_tilt(self, force_W: np.ndarray) -> np.ndarray:
         """Keep the vertical force above ``min_thrust_fraction m g`` and the tilt below ``max_tilt_rad``."""
         out = force_W.copy()
-        out[2] = max(out[2], self._gains.min_thrust_fraction * self._vehicle.hover_thrust_N)
+        out[2] = max(out[2], self._min_thrust_N)
         horizontal = float(np.linalg.norm(out[:2]))
-        max_horizontal = out[2] * np.tan(self._gains.max_tilt_rad)
+        max_horizontal = out[2] * self._tan_max_tilt
         if horizontal > max_horizontal:
             out[:2] *= max_horizontal / horizontal
         return out
