@@ -157,6 +157,28 @@ class SE3Controller:
 
     def update(self, t_s: float, state: NavState, setpoint: FlatOutput) -> ControlCommand:
         """Motor command for ``state`` tracking ``setpoint`` at time ``t_s`` (s)."""
+        thrusts, R_d = self._thrusts_and_attitude(t_s, state, setpoint)
+        # Report the wrench the motors actually produce.
+        produced_collective, produced_moments = self._mixer.wrench(thrusts)
+        return ControlCommand(
+            thrusts_N=thrusts,
+            collective_N=produced_collective,
+            moments_B_Nm=produced_moments,
+            R_WB_desired=R_d,
+        )
+
+    def thrusts(self, t_s: float, state: NavState, setpoint: FlatOutput) -> np.ndarray:
+        """Motor thrusts (N), shape (4,): ``update(...).thrusts_N`` without building the full command.
+
+        For loops that use only the thrusts (the Gymnasium envs, every low-level tick); the integral state
+        advances exactly as in :meth:`update`.
+        """
+        return self._thrusts_and_attitude(t_s, state, setpoint)[0]
+
+    def _thrusts_and_attitude(
+        self, t_s: float, state: NavState, setpoint: FlatOutput
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Steps 1-6 above: motor thrusts (N), shape (4,), and desired attitude ``R_WB_d``, shape (3, 3)."""
         g, m = self._gains, self._vehicle.mass_kg
         R = state.R_WB
 
@@ -189,15 +211,8 @@ class SE3Controller:
         w = state.omega_B
         moments_B = -g.kR_Nm_rad * e_R - g.kw_Nm_s_rad * e_w + cross(w, J @ w) - J @ (skew(w) @ omega_d_B)
 
-        # 6. Mix and saturate; report the wrench the motors actually produce.
-        thrusts = self._mixer.motor_thrusts(collective_N, moments_B)
-        produced_collective, produced_moments = self._mixer.wrench(thrusts)
-        return ControlCommand(
-            thrusts_N=thrusts,
-            collective_N=produced_collective,
-            moments_B_Nm=produced_moments,
-            R_WB_desired=R_d,
-        )
+        # 6. Mix and saturate.
+        return self._mixer.motor_thrusts(collective_N, moments_B), R_d
 
     def _integrate(self, t_s: float, e_p: np.ndarray) -> None:
         """Accumulate the position error over the time since the last update (clamped, anti-windup)."""

@@ -89,6 +89,7 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
             m.setattr(se3.SE3Controller, "_integrate", _old_integrate)
             m.setattr(se3.SE3Controller, "_limit_tilt", _old_limit_tilt)
             m.setattr(se3, "cross", _old_cross)
+            m.setattr(se3.SE3Controller, "thrusts", lambda self, t, x, sp: self.update(t, x, sp).thrusts_N)
         env = HoverEnv(**kwargs)
         out = [env.reset(seed=3)]
         for a in actions:
