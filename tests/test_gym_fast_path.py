@@ -1,7 +1,8 @@
 """The Gymnasium hot-path speed-ups change no number: the fast env against the pre-speed-up code path.
 
-The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the SE(3)
-controller's gain constants built once and the 3-vector ``lie.cross`` are patched back, in the second env
+The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the memoized gust
+decay, the SE(3) controller's gain constants built once, ``SE3Controller.thrusts`` and the 3-vector
+``lie.cross`` are patched back, in the second env
 of each pair, to the code they replaced (copied below), and both envs are stepped with the same seed and
 the same actions: observations, rewards, terminations and ``info`` must agree bit for bit.
 """
@@ -47,6 +48,18 @@ def _old_crashed(self, airborne):
     return airborne and self.sim.in_collision()
 
 
+def _old_apply_wind(self, dt):
+    w = self.config.wind
+    if w.gust_sigma_N <= 0.0 and not any(w.mean_force_W_N):
+        return
+    if w.gust_sigma_N > 0.0:
+        a = np.exp(-dt / w.gust_time_constant_s)
+        noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * np.sqrt(1.0 - a * a)
+        noise[2] = 0.0
+        self._wind_gust_W = a * self._wind_gust_W + noise
+    self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
+
+
 def _old_integrate(self, t_s, e_p):
     if self._last_t_s is not None:
         dt = t_s - self._last_t_s
@@ -86,6 +99,7 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
             m.setattr(ClosedLoopSim, "truth", _old_truth)
             m.setattr(ClosedLoopSim, "_feed_truth", _old_feed_truth)
             m.setattr(ClosedLoopSim, "crashed", _old_crashed)
+            m.setattr(ClosedLoopSim, "_apply_wind", _old_apply_wind)
             m.setattr(se3.SE3Controller, "_integrate", _old_integrate)
             m.setattr(se3.SE3Controller, "_limit_tilt", _old_limit_tilt)
             m.setattr(se3, "cross", _old_cross)

@@ -151,6 +151,7 @@ class ClosedLoopSim:
         self._truth_fed: TruthState | None = None
         self._pending: deque[tuple[float, CameraFrame]] = deque()
         self._wind_gust_W = np.zeros(3)
+        self._gust_decay: dict[tuple[float, float], tuple[float, float]] = {}
         self._step_count = 0
         self.last_frame: CameraFrame | None = None
         self.last_imu: ImuSample | None = None
@@ -288,8 +289,14 @@ class ClosedLoopSim:
         if w.gust_sigma_N <= 0.0 and not any(w.mean_force_W_N):
             return  # calm air: xfrc_applied stays zero
         if w.gust_sigma_N > 0.0:
-            a = np.exp(-dt / w.gust_time_constant_s)
-            noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * np.sqrt(1.0 - a * a)
+            # First-order Gauss-Markov gust: the decay and its noise scale depend on dt only (memoized).
+            key = (dt, w.gust_time_constant_s)
+            decay = self._gust_decay.get(key)
+            if decay is None:
+                a = np.exp(-dt / w.gust_time_constant_s)
+                decay = self._gust_decay[key] = (a, np.sqrt(1.0 - a * a))
+            a, scale = decay
+            noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * scale
             noise[2] = 0.0
             self._wind_gust_W = a * self._wind_gust_W + noise
         self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
