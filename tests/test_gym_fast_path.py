@@ -2,7 +2,7 @@
 
 The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the memoized gust
 decay, the SE(3) controller's gain constants built once, ``SE3Controller.thrusts`` and the 3-vector
-``lie.cross`` are patched back, in the second env
+``lie.cross`` are patched back, and the IMU model runs although nothing reads it, in the second env
 of each pair, to the code they replaced (copied below), and both envs are stepped with the same seed and
 the same actions: observations, rewards, terminations and ``info`` must agree bit for bit.
 """
@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from viotb.controllers import se3
+from viotb.envs.gym.base import VioQuadEnv
 from viotb.envs.gym.hover import HoverEnv
 from viotb.envs.run.closed_loop import _COS_MAX_TILT, ClosedLoopSim, TruthState
 from viotb.vio.types import StateEstimate
@@ -100,6 +101,7 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
             m.setattr(ClosedLoopSim, "_feed_truth", _old_feed_truth)
             m.setattr(ClosedLoopSim, "crashed", _old_crashed)
             m.setattr(ClosedLoopSim, "_apply_wind", _old_apply_wind)
+            m.setattr(VioQuadEnv, "_reads_imu", lambda self: True)
             m.setattr(se3.SE3Controller, "_integrate", _old_integrate)
             m.setattr(se3.SE3Controller, "_limit_tilt", _old_limit_tilt)
             m.setattr(se3, "cross", _old_cross)

@@ -314,11 +314,20 @@ class VioQuadEnv(gymnasium.Env):
         self._prev_action = self._neutral.copy()
         self._imu.clear()
         self._terminated = False
+        loop.simulate_imu = self._reads_imu()
         self._collect_imu()
         self._update_target()
         return self._get_obs(), self._get_info({}, "")
 
     # ------------------------------------------------------------------ step
+
+    def _reads_imu(self) -> bool:
+        """Whether anything reads the IMU samples after reset (else the rig skips the IMU model).
+
+        The estimator does (every one but the ``ground-truth`` pass-through, which ignores them), and so does
+        the ``dict`` observation's ``imu`` window; skipping changes no observation, reward or termination.
+        """
+        return self.config.estimator != "ground-truth" or self.config.obs_mode != "state"
 
     def _collect_imu(self) -> None:
         imu = self._loop.last_imu

@@ -155,6 +155,10 @@ class ClosedLoopSim:
         self._step_count = 0
         self.last_frame: CameraFrame | None = None
         self.last_imu: ImuSample | None = None
+        self.simulate_imu = True
+        """False skips the IMU model (its own random stream) at every sample time: for a consumer that reads
+        no IMU sample, e.g. a ``ground-truth`` estimator under a state-only observation (the Gymnasium envs);
+        :attr:`last_imu` then stays as it was. The physics chunks keep their IMU-period boundaries."""
         self.frames_delivered = 0
         self.frames_dropped = 0
         self.estimator_failure = ""
@@ -325,7 +329,7 @@ class ClosedLoopSim:
             self.sim.step(thrusts_N, chunk)
             self._step_count += chunk
             done += chunk
-            if self._step_count % self._imu_every == 0:
+            if self.simulate_imu and self._step_count % self._imu_every == 0:
                 omega_B, f_B = self.config.faults.imu_input(
                     self.sim.angular_velocity_B(), self.sim.specific_force_B()
                 )
