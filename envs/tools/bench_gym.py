@@ -7,8 +7,8 @@ each as a single env and as a vector env of K copies (``--vector async``, the de
 ``AsyncVectorEnv``, one worker process per copy, so K copies on K free cores should give close to K times the
 single env's steps/s, reported as ``vector_speedup``; ``--vector sync``: a ``SyncVectorEnv`` in this
 process). The real-time factor is ``env steps/s * ctrl_dt`` (simulated seconds per wall second, summed over
-the vector's copies). Worker start-up and reset time are excluded; the median over repeats is reported
-(DESIGN.md: about one run in ten lands in a slower mode).
+the vector's copies). Worker start-up, reset and a few warm-up steps are excluded; the median over repeats is
+reported (DESIGN.md: about one run in ten lands in a slower mode).
 """
 
 from __future__ import annotations
@@ -35,10 +35,16 @@ SETUPS = {
 """Set-up name -> env keyword arguments."""
 
 
+WARMUP_STEPS = 5
+"""Untimed steps after the reset (a fresh worker's first steps pay one-off costs: lazy imports, caches)."""
+
+
 def _steps_per_s(env: gymnasium.Env, n_steps: int, n_copies: int, seed: int) -> float:
-    """Env steps per wall second over ``n_steps`` calls to ``step`` (after a reset, not timed)."""
+    """Env steps per wall second over ``n_steps`` calls to ``step`` (after a reset and warm-up, not timed)."""
     env.reset(seed=seed)
     action = np.zeros(env.action_space.shape, dtype=np.float32)
+    for _ in range(WARMUP_STEPS):
+        env.step(action)
     t0 = time.perf_counter()
     for _ in range(n_steps):
         env.step(action)
