@@ -17,6 +17,7 @@ import argparse
 import json
 import os
 import time
+from functools import partial
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -33,6 +34,15 @@ SETUPS = {
     "msckf+klt": {"estimator": "msckf", "frontend": "klt"},
 }
 """Set-up name -> env keyword arguments."""
+
+
+def _make_hover(kwargs: dict) -> gymnasium.Env:
+    """``viotb/Hover-v0`` with ``kwargs``.
+
+    Module level, so a spawned worker imports this module (and with it the ids' registration) when it
+    unpickles the factory.
+    """
+    return gymnasium.make("viotb/Hover-v0", **kwargs)
 
 
 WARMUP_STEPS = 5
@@ -84,7 +94,7 @@ def bench(
         n_steps = max(1, min(round(seconds / ctrl_dt), single.spec.max_episode_steps or 10**9))
     rates = [_steps_per_s(single, n_steps, 1, seed) for seed in range(repeats)]
     single.close()
-    fns = [lambda: gymnasium.make("viotb/Hover-v0", **kwargs) for _ in range(num_envs)]
+    fns = [partial(_make_hover, kwargs) for _ in range(num_envs)]
     if vector == "async":
         vec = gymnasium.vector.AsyncVectorEnv(fns, context="spawn")
     else:
