@@ -115,3 +115,30 @@ def test_equidistant_camera_goes_through_the_klt_front_end():
     b = trk.process(CameraFrame(0.05, image=_shift(img0, 1.5, 0.5)), 0.05)
     assert len(b) > 100
     np.testing.assert_allclose(b.xy_norm, cam.undistort_points(b.uv_px), atol=1e-12)
+
+
+def test_klt_backward_pass_on_kept_points_equals_the_full_forward_backward_check():
+    """Tracking back only the points the forward pass kept gives the tracks of the full backward pass.
+
+    Reference: both LK passes over every point, then the status, forward-backward and border tests (what
+    the tracker did before it skipped the rejected points); on a shifted and slightly zoomed texture.
+    """
+    rng = np.random.default_rng(2)
+    cam = PinholeCamera(320, 240, 120.0, 120.0, 160.0, 120.0)
+    img0 = _texture(rng)
+    M = np.array([[1.02, 0.0, -1.5], [0.0, 1.02, 6.0]])  # zoom + shift: some points leave the image
+    img1 = cv2.warpAffine(img0, M, (320, 240), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    trk = KltTracker(cam)
+    trk.process(CameraFrame(0.0, image=img0), 0.0)
+    p, prev = trk.params, trk._prev_pts.copy()
+    lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels}
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(img0, img1, prev.reshape(-1, 1, 2), None, **lk)
+    p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, None, **lk)
+    fb = np.linalg.norm(p0r.reshape(-1, 2) - prev, axis=1)
+    good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_error_px)
+    good &= cam.in_image(p1.reshape(-1, 2).astype(float), p.border_px)
+    assert 0 < good.sum() < len(prev)  # the check rejects some points and keeps most
+    pts, ids = trk._track(img1)
+    kept = np.isin(ids, trk._prev_ids[good])
+    assert kept.all()  # RANSAC only removes more
+    np.testing.assert_array_equal(pts, p1.reshape(-1, 2)[good][np.isin(trk._prev_ids[good], ids)])

@@ -146,3 +146,23 @@ def test_msckf_klt_nees_monte_carlo(tmp_path, scenario):
     runs = [_msckf_on_recording(tmp_path, scenario, seed, 20.0) for seed in range(5)]
     assert not any(m["diverged"] for m in runs)
     assert 0.75 < np.mean([m["nees_pos_anchored_mean"] for m in runs]) < 5.0
+
+
+def test_track_path_equals_the_view_by_view_walk_on_random_masks():
+    """The vectorized path is the view-by-view walk (previous valid view of the same camera) to round-off."""
+    rng = np.random.default_rng(3)
+    for K in (1, 2, 5, 11):
+        xy = rng.normal(size=(30, 2 * K, 2))
+        mask = rng.random((30, 2 * K)) < 0.6
+        focal = np.repeat([120.0, 180.0], K)
+        ref = np.zeros((30, 2 * K))
+        for f in range(30):
+            for c0 in (0, K):
+                last, total = None, 0.0
+                for v in range(c0, c0 + K):
+                    if not mask[f, v]:
+                        continue
+                    if last is not None:
+                        total = total + np.linalg.norm(xy[f, v] - xy[f, last]) * focal[v]
+                    ref[f, v], last = total, v
+        np.testing.assert_allclose(track_path_px(xy, mask, focal, K), ref, rtol=1e-12, atol=0)

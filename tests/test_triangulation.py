@@ -58,3 +58,58 @@ def test_rejects_degenerate_geometry_and_outliers():
     assert not same.valid[0]
     single = triangulate(R_WC, p_WC, xy[:1], np.eye(6, dtype=bool)[:1])
     assert not single.valid[0]
+
+
+def _triangulate_one(R_WC, p_WC, xy, m, p, focal_px):
+    """Per-feature reference: midpoint start, LM on ``h = R_CA ([a, b, 1] - rho p)`` (J = dz/dh dh/dx)."""
+    idx = np.flatnonzero(m)
+    R_WA, p_WA = R_WC[idx[0]], p_WC[idx[0]]
+    R_AC = [R_WA.T @ R_WC[k] for k in idx]
+    p_AC = [R_WA.T @ (p_WC[k] - p_WA) for k in idx]
+    A, rhs = np.zeros((3, 3)), np.zeros(3)
+    for R, t, z in zip(R_AC, p_AC, xy[idx], strict=True):
+        b = R @ np.append(z, 1.0)
+        b /= np.linalg.norm(b)
+        A += np.eye(3) - np.outer(b, b)
+        rhs += (np.eye(3) - np.outer(b, b)) @ t
+    p_A = np.linalg.solve(A, rhs)
+    x = np.array([p_A[0] / p_A[2], p_A[1] / p_A[2], 1.0 / p_A[2]])
+
+    def residual_and_jacobian(x_):
+        e, J = [], []
+        for R, t, z in zip(R_AC, p_AC, xy[idx], strict=True):
+            h = R.T @ (np.array([x_[0], x_[1], 1.0]) - x_[2] * t)
+            e.append(h[:2] / h[2] - z)
+            dz_dh = np.array([[1.0, 0.0, -h[0] / h[2]], [0.0, 1.0, -h[1] / h[2]]]) / h[2]
+            J.append(dz_dh @ np.column_stack([R.T[:, 0], R.T[:, 1], -R.T @ t]))
+        return np.concatenate(e), np.vstack(J)
+
+    e, _ = residual_and_jacobian(x)
+    cost, lam = e @ e, p.initial_damping
+    for _ in range(p.max_iterations):
+        e, J = residual_and_jacobian(x)
+        JtJ = J.T @ J
+        x_new = x - np.linalg.solve(JtJ + lam * (np.diag(np.diag(JtJ)) + 1e-12 * np.eye(3)), J.T @ e)
+        e_new, _ = residual_and_jacobian(x_new)
+        if e_new @ e_new < cost:
+            x, cost, lam = x_new, e_new @ e_new, lam * 0.1
+        else:
+            lam *= 10.0
+    p_W = R_WA @ (np.array([x[0], x[1], 1.0]) / x[2]) + p_WA
+    return p_W, np.sqrt(cost / len(idx)) * focal_px
+
+
+def test_batched_triangulation_equals_the_per_feature_reference():
+    """The batched LM (``h`` affine in the inverse-depth parameters) is the per-feature one to round-off."""
+    rng = np.random.default_rng(7)
+    R_WC, p_WC = _views(rng, K=9)
+    pts = rng.uniform([-2, -1.5, 3.0], [2, 1.5, 8.0], size=(40, 3))
+    xy = _observe(R_WC, p_WC, pts, rng, sigma=3.0 / 120.0)
+    mask = rng.random((40, 9)) < 0.7
+    mask[:, :2] = True  # at least two views each
+    p = TriangulationParams()
+    res = triangulate(R_WC, p_WC, np.where(mask[..., None], xy, np.nan), mask, p, 120.0)
+    for f in range(40):
+        p_ref, rms_ref = _triangulate_one(R_WC, p_WC, xy[f], mask[f], p, 120.0)
+        np.testing.assert_allclose(res.p_W[f], p_ref, rtol=1e-9, atol=1e-9 * np.linalg.norm(p_ref))
+        np.testing.assert_allclose(res.rms_error_px[f], rms_ref, rtol=1e-9, atol=1e-12)

@@ -149,3 +149,18 @@ def test_observability_constrain_is_the_smallest_change_that_annihilates_the_dir
     # Rows that already ignore the directions are unchanged.
     H0 = H_star[0]
     np.testing.assert_allclose(observability_constrain(H0, U), H0, atol=1e-12)
+
+
+def test_clone_unobservable_basis_equals_the_per_clone_blocks():
+    """Each clone block holds ``[R_k^T e_z; e_z x p_k]`` and the identity translation block; the rest is 0."""
+    rng = np.random.default_rng(5)
+    K, dim = 7, 21 + 6 * 7
+    R_WB = np.stack([exp_so3(rng.normal(size=3)) for _ in range(K)])
+    p_WB = rng.normal(size=(K, 3))
+    offsets = 21 + 6 * rng.permutation(K)
+    ref = np.zeros((dim, 4))
+    for k, o in enumerate(offsets):
+        ref[o + 3 : o + 6, 0:3] = np.eye(3)
+        ref[o : o + 3, 3] = R_WB[k].T @ np.array([0.0, 0.0, 1.0])
+        ref[o + 3 : o + 6, 3] = np.cross([0.0, 0.0, 1.0], p_WB[k])
+    np.testing.assert_allclose(clone_unobservable_basis(R_WB, p_WB, offsets, dim), ref, rtol=0, atol=1e-15)

@@ -202,11 +202,14 @@ class KltTracker:
         lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels}
         p0 = self._prev_pts.reshape(-1, 1, 2)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, None, **lk)
-        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1, None, **lk)
         p1 = p1.reshape(-1, 2)
-        fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts, axis=1)
-        good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_error_px)
-        good &= self.camera.in_image(p1.astype(float), p.border_px)
+        # Backward pass only for the points the forward pass kept (LK tracks each point on its own).
+        good = (st1.ravel() == 1) & self.camera.in_image(p1.astype(float), p.border_px)
+        fwd = np.flatnonzero(good)
+        if len(fwd):
+            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1[fwd].reshape(-1, 1, 2), None, **lk)
+            fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts[fwd], axis=1)
+            good[fwd] = (st2.ravel() == 1) & (fb < p.fb_max_error_px)
         pts, ids, prev = p1[good], self._prev_ids[good], self._prev_pts[good]
         if len(pts) >= 8:
             a = self.undistort(prev) * self._focal_px
@@ -226,8 +229,7 @@ class KltTracker:
         kps = self._fast.detect(img, None)
         if not kps:
             return np.zeros((0, 2), dtype=np.float32)
-        cand = np.array([kp.pt for kp in kps], dtype=np.float32)
-        resp = np.array([kp.response for kp in kps], dtype=np.float32)
+        cand = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
         h, w = img.shape
         inside = self.camera.in_image(cand.astype(float), p.border_px + 4)
         # Occupancy at min_distance resolution: reject candidates whose cell (or a neighbour) holds a feature.
@@ -242,8 +244,10 @@ class KltTracker:
                     occ[cj + dj, ci + di] = True
         ki = np.clip((cand[:, 0] / cell).astype(int) + 1, 0, gw - 1)
         kj = np.clip((cand[:, 1] / cell).astype(int) + 1, 0, gh - 1)
-        ok = inside & ~occ[kj, ki]
-        cand, resp, ki, kj = cand[ok], resp[ok], ki[ok], kj[ok]
+        ok = np.flatnonzero(inside & ~occ[kj, ki])
+        cand, ki, kj = cand[ok], ki[ok], kj[ok]
+        # Responses only of the candidates kept (reading a KeyPoint costs a Python call each).
+        resp = np.fromiter((kps[i].response for i in ok), dtype=np.float32, count=len(ok))
         if len(cand) == 0:
             return np.zeros((0, 2), dtype=np.float32)
         # One corner per occupancy cell (the strongest), then a per-bucket quota.

@@ -192,15 +192,21 @@ def msckf_update(
         w[:, K:] *= focal_right_px / focal_px  # whiten cam1 rows to cam0's normalized sigma
     r = ((xy - cur.z_norm) * w).reshape(F, 2 * V)
     H_f = (jac.H_feature * w[..., None]).reshape(F, 2 * V, 3)
-    H_x = np.zeros((F, 2 * V, st.dim))
+    # The rows touch only the clone blocks and the extrinsic: steps 3-6 work on those columns ``cols``
+    # of the error state (clone k at 6 k, then the extrinsic), the others are exactly zero.
+    clone_offsets = np.array([st.clone_block(float(t)).offset for t in times])
+    cols = (clone_offsets[:, None] + np.arange(6)).ravel()
+    has_ext = st.has_block(EXTRINSIC_BLOCK)
+    if has_ext:
+        cols = np.concatenate([cols, st.block(EXTRINSIC_BLOCK).offset + np.arange(6)])
+    n_c = len(cols)
+    H_x = np.zeros((F, V, 2, n_c))
     H_pose = jac.H_pose * w[..., None]
-    for k, t in enumerate(times):
-        o = st.clone_block(float(t)).offset
-        for v in range(k, V, K):  # this clone's view in every camera
-            H_x[:, 2 * v : 2 * v + 2, o : o + 6] = H_pose[:, v]
-    if st.has_block(EXTRINSIC_BLOCK):
-        o = st.block(EXTRINSIC_BLOCK).offset
-        H_x[:, :, o : o + 6] = (jac.H_extrinsic * w[..., None]).reshape(F, 2 * V, 6)
+    for k in range(K):
+        H_x[:, k::K, :, 6 * k : 6 * k + 6] = H_pose[:, k::K]  # this clone's view in every camera
+    if has_ext:
+        H_x[..., 6 * K :] = jac.H_extrinsic * w[..., None]
+    H_x = H_x.reshape(F, 2 * V, n_c)
     q_px = track_random_walk_px2_per_px(p)
     if q_px > 0.0:
         # 3b. Correlated track noise (white + a random walk per pixel of image motion): whiten each
@@ -211,21 +217,20 @@ def msckf_update(
         )
         r = (W @ r.reshape(F, V, 2)).reshape(F, 2 * V)  # rows are (view, axis): W acts on the views
         H_f = (W @ H_f.reshape(F, V, 6)).reshape(F, 2 * V, 3)
-        H_x = (W @ H_x.reshape(F, V, 2 * st.dim)).reshape(F, 2 * V, st.dim)
+        H_x = (W @ H_x.reshape(F, V, 2 * n_c)).reshape(F, 2 * V, n_c)
     # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
     H_o, r_o = nullspace_project(H_x, H_f, r)
     if p.use_fej and p.update_linearization == "current_oc":
         # 4b. Observability constraint: no information on global position/yaw at the first estimates,
         #     the directions the FEJ propagation keeps unobservable (Hesch et al. TRO 2014, OC-EKF).
-        offsets = np.array([st.clone_block(float(t)).offset for t in times])
         R_fej = np.stack([c.R_WB_fej for c in clones])
         p_fej = np.stack([c.p_WB_fej for c in clones])
-        U = clone_unobservable_basis(R_fej, p_fej, offsets, st.dim)
-        H_o = observability_constrain(H_o, U)
+        U = clone_unobservable_basis(R_fej, p_fej, clone_offsets, st.dim)
+        H_o = observability_constrain(H_o, U[cols])  # U is zero off the clone blocks
     # 5. Chi-square gate at 95 % per feature with dof = 2 m - 3 (m views over all cameras).
-    P = st.cov
+    P_cc = st.cov[np.ix_(cols, cols)]
     sigma2 = (p.pixel_sigma_px / focal_px) ** 2
-    HP = (H_o.reshape(-1, st.dim) @ P).reshape(H_o.shape)
+    HP = (H_o.reshape(-1, n_c) @ P_cc).reshape(H_o.shape)
     S = HP @ np.swapaxes(H_o, 1, 2)
     S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += sigma2
     chi2 = np.einsum("fi,fi->f", r_o, np.linalg.solve(S, r_o[..., None])[..., 0])
@@ -246,9 +251,11 @@ def msckf_update(
     if n_pass == 0:
         return stats
     # 6. Stack, compress (QR) and update.
-    H_all = H_o[passed].reshape(-1, st.dim)
+    H_all = H_o[passed].reshape(-1, n_c)
     r_all = r_o[passed].reshape(-1)
     H_c, r_c = measurement_compress(H_all, r_all)
-    ekf_update(st, H_c, r_c, sigma2)
+    H_full = np.zeros((len(H_c), st.dim))
+    H_full[:, cols] = H_c
+    ekf_update(st, H_full, r_c, sigma2)
     # 7. Marginalizing the oldest clone is done by the caller after this update.
     return stats

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-from viotb.vio.lie import exp_so3
+from viotb.vio.lie import exp_so3, exp_so3_batch
 
 IMU_DIM = 15
 CLONE_DIM = 6
@@ -223,10 +223,13 @@ class State:
             self.p_BC = self.p_BC + dx[o + 3 : o + 6]
         if TIME_OFFSET_BLOCK in self._blocks:
             self.time_offset_s += float(dx[self._blocks[TIME_OFFSET_BLOCK].offset])
-        for t, clone in self.clones.items():
-            o = self._blocks[self.clone_name(t)].offset
-            clone.R_WB = clone.R_WB @ exp_so3(dx[o : o + 3])
-            clone.p_WB = clone.p_WB + dx[o + 3 : o + 6]
+        if self.clones:  # all clones at once: one stacked Rodrigues
+            clones = list(self.clones.items())
+            o = np.array([self._blocks[self.clone_name(t)].offset for t, _ in clones])[:, None] + np.arange(3)
+            dR = exp_so3_batch(dx[o])
+            for k, (_, clone) in enumerate(clones):
+                clone.R_WB = clone.R_WB @ dR[k]
+                clone.p_WB = clone.p_WB + dx[o[k] + 3]
 
 
 def marginal_covariance(state: State, blocks: list[Block] | tuple[Block, ...]) -> np.ndarray:

@@ -175,12 +175,12 @@ def clone_unobservable_basis(R_WB: np.ndarray, p_WB: np.ndarray, offsets: np.nda
     Returns:
         ``U`` of shape (dim, 4): columns x, y, z translation and yaw.
     """
-    e_z = np.array([0.0, 0.0, 1.0])
+    o = np.asarray(offsets, dtype=int)[:, None] + np.arange(3)  # (K, 3) rows of each dtheta block
     U = np.zeros((dim, 4))
-    for k, o in enumerate(np.asarray(offsets, dtype=int)):
-        U[o + 3 : o + 6, 0:3] = np.eye(3)
-        U[o : o + 3, 3] = R_WB[k].T @ e_z
-        U[o + 3 : o + 6, 3] = np.cross(e_z, p_WB[k])
+    U[o + 3, np.arange(3)] = 1.0  # dp = t
+    U[o, 3] = np.asarray(R_WB)[:, 2, :]  # R_k^T e_z: the last row of R_k
+    p = np.asarray(p_WB)
+    U[o + 3, 3] = np.stack([-p[:, 1], p[:, 0], np.zeros(len(p))], axis=1)  # e_z x p_k
     return U
 
 
@@ -265,14 +265,16 @@ def track_path_px(
         Path length (px), shape (F, V); 0 at masked views and at each first view.
     """
     F, V = mask.shape
+    mask = np.asarray(mask, dtype=bool)
     out = np.zeros((F, V))
+    rows = np.arange(F)[:, None]
     for c0 in range(0, V, views_per_camera):
-        last = np.full((F, 2), np.nan)
-        total = np.zeros(F)
-        for v in range(c0, c0 + views_per_camera):
-            m = mask[:, v]
-            step = np.linalg.norm(xy[:, v] - last, axis=1) * focal_px[v]
-            total = np.where(m & np.isfinite(step), total + np.nan_to_num(step), total)
-            out[:, v] = np.where(m, total, 0.0)
-            last = np.where(m[:, None], xy[:, v], last)
+        cols = slice(c0, c0 + views_per_camera)
+        m = mask[:, cols]
+        # Previous valid view of the same camera (-1: none), by a running max of the valid view indices.
+        last = np.maximum.accumulate(np.where(m, np.arange(c0, c0 + views_per_camera), -1), axis=1)
+        prev = np.concatenate([np.full((F, 1), -1), last[:, :-1]], axis=1)
+        step = np.linalg.norm(xy[:, cols] - xy[rows, np.maximum(prev, 0)], axis=2) * focal_px[cols]
+        step = np.where(m & (prev >= 0) & np.isfinite(step), step, 0.0)
+        out[:, cols] = np.where(m, np.cumsum(step, axis=1), 0.0)
     return out
