@@ -136,6 +136,14 @@ class SE3Controller:
         self._mixer = mixer if mixer is not None else Mixer(vehicle)
         self._integral_m_s = np.zeros(3)
         self._last_t_s: float | None = None
+        # Constants of the gains, built once instead of at every update (the gains are frozen).
+        ki = self._gains.ki_N_m_s
+        limit = np.full(3, np.inf)
+        np.divide(self._gains.integral_limit_N, ki, out=limit, where=ki > 0.0)
+        self._integral_limit_m_s = limit
+        self._neg_integral_limit_m_s = -limit
+        self._tan_max_tilt = np.tan(self._gains.max_tilt_rad)
+        self._min_thrust_N = self._gains.min_thrust_fraction * self._vehicle.hover_thrust_N
 
     @property
     def gains(self) -> SE3Gains:
@@ -149,6 +157,28 @@ class SE3Controller:
 
     def update(self, t_s: float, state: NavState, setpoint: FlatOutput) -> ControlCommand:
         """Motor command for ``state`` tracking ``setpoint`` at time ``t_s`` (s)."""
+        thrusts, R_d = self._thrusts_and_attitude(t_s, state, setpoint)
+        # Report the wrench the motors actually produce.
+        produced_collective, produced_moments = self._mixer.wrench(thrusts)
+        return ControlCommand(
+            thrusts_N=thrusts,
+            collective_N=produced_collective,
+            moments_B_Nm=produced_moments,
+            R_WB_desired=R_d,
+        )
+
+    def thrusts(self, t_s: float, state: NavState, setpoint: FlatOutput) -> np.ndarray:
+        """Motor thrusts (N), shape (4,): ``update(...).thrusts_N`` without building the full command.
+
+        For loops that use only the thrusts (the Gymnasium envs, every low-level tick); the integral state
+        advances exactly as in :meth:`update`.
+        """
+        return self._thrusts_and_attitude(t_s, state, setpoint)[0]
+
+    def _thrusts_and_attitude(
+        self, t_s: float, state: NavState, setpoint: FlatOutput
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Steps 1-6 above: motor thrusts (N), shape (4,), and desired attitude ``R_WB_d``, shape (3, 3)."""
         g, m = self._gains, self._vehicle.mass_kg
         R = state.R_WB
 
@@ -181,15 +211,8 @@ class SE3Controller:
         w = state.omega_B
         moments_B = -g.kR_Nm_rad * e_R - g.kw_Nm_s_rad * e_w + cross(w, J @ w) - J @ (skew(w) @ omega_d_B)
 
-        # 6. Mix and saturate; report the wrench the motors actually produce.
-        thrusts = self._mixer.motor_thrusts(collective_N, moments_B)
-        produced_collective, produced_moments = self._mixer.wrench(thrusts)
-        return ControlCommand(
-            thrusts_N=thrusts,
-            collective_N=produced_collective,
-            moments_B_Nm=produced_moments,
-            R_WB_desired=R_d,
-        )
+        # 6. Mix and saturate.
+        return self._mixer.motor_thrusts(collective_N, moments_B), R_d
 
     def _integrate(self, t_s: float, e_p: np.ndarray) -> None:
         """Accumulate the position error over the time since the last update (clamped, anti-windup)."""
@@ -198,10 +221,9 @@ class SE3Controller:
             if 0.0 < dt <= _MAX_INTEGRATION_STEP_S:
                 self._integral_m_s = self._integral_m_s + e_p * dt
         self._last_t_s = float(t_s)
-        ki = self._gains.ki_N_m_s
-        limit = np.full(3, np.inf)
-        np.divide(self._gains.integral_limit_N, ki, out=limit, where=ki > 0.0)
-        self._integral_m_s = np.clip(self._integral_m_s, -limit, limit)
+        self._integral_m_s = np.clip(
+            self._integral_m_s, self._neg_integral_limit_m_s, self._integral_limit_m_s
+        )
 
     def _integral_force_N(self) -> np.ndarray:
         """Integral force ``k_i int(e_p)`` (N), shape (3,)."""
@@ -210,9 +232,9 @@ class SE3Controller:
     def _limit_tilt(self, force_W: np.ndarray) -> np.ndarray:
         """Keep the vertical force above ``min_thrust_fraction m g`` and the tilt below ``max_tilt_rad``."""
         out = force_W.copy()
-        out[2] = max(out[2], self._gains.min_thrust_fraction * self._vehicle.hover_thrust_N)
+        out[2] = max(out[2], self._min_thrust_N)
         horizontal = float(np.linalg.norm(out[:2]))
-        max_horizontal = out[2] * np.tan(self._gains.max_tilt_rad)
+        max_horizontal = out[2] * self._tan_max_tilt
         if horizontal > max_horizontal:
             out[:2] *= max_horizontal / horizontal
         return out

@@ -154,6 +154,8 @@ class VioQuadEnv(gymnasium.Env):
         self._arena_hi = np.asarray(hi) - cfg.arena_margin_m
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
         self.observation_space = self._observation_space()
+        state_space = self.observation_space if cfg.obs_mode == "state" else self.observation_space["state"]
+        self._state_low, self._state_high = state_space.low, state_space.high  # read every step
         self._loop: ClosedLoopSim | None = None
         self._controller: SE3Controller | None = None
         self._renderer = None
@@ -269,7 +271,7 @@ class VioQuadEnv(gymnasium.Env):
             )
         else:
             setpoint = self._position_setpoint(a)
-        return self._controller.update(self._loop.t_s, NavState.from_estimate(est), setpoint).thrusts_N
+        return self._controller.thrusts(self._loop.t_s, NavState.from_estimate(est), setpoint)
 
     def _position_setpoint(self, a: np.ndarray) -> FlatOutput:
         """Setpoint of the ``position`` action: constant over a policy step, so built once per step.
@@ -312,11 +314,20 @@ class VioQuadEnv(gymnasium.Env):
         self._prev_action = self._neutral.copy()
         self._imu.clear()
         self._terminated = False
+        loop.simulate_imu = self._reads_imu()
         self._collect_imu()
         self._update_target()
         return self._get_obs(), self._get_info({}, "")
 
     # ------------------------------------------------------------------ step
+
+    def _reads_imu(self) -> bool:
+        """Whether anything reads the IMU samples after reset (else the rig skips the IMU model).
+
+        The estimator does (every one but the ``ground-truth`` pass-through, which ignores them), and so does
+        the ``dict`` observation's ``imu`` window; skipping changes no observation, reward or termination.
+        """
+        return self.config.estimator != "ground-truth" or self.config.obs_mode != "state"
 
     def _collect_imu(self) -> None:
         imu = self._loop.last_imu
@@ -343,7 +354,7 @@ class VioQuadEnv(gymnasium.Env):
         reason = ""
         for _ in range(self._n_inner):
             est = loop.estimate()
-            if est is None or loop.health().diverged or not np.all(np.isfinite(est.p_WB)):
+            if est is None or loop.health().diverged or not np.isfinite(est.p_WB).all():
                 reason = "diverged"
                 break
             loop.advance(self._thrusts(a, est), self.config.inner_ctrl_dt)
@@ -356,7 +367,7 @@ class VioQuadEnv(gymnasium.Env):
         tr = loop.truth()
         if not reason and loop.health().diverged:
             reason = "diverged"
-        if not reason and (np.any(tr.p_WB < self._arena_lo) or np.any(tr.p_WB > self._arena_hi)):
+        if not reason and ((tr.p_WB < self._arena_lo).any() or (tr.p_WB > self._arena_hi).any()):
             reason = "left_arena"
         err = float(np.linalg.norm(tr.p_WB - self._target_true_W))
         if not reason and err > self.config.max_target_distance_m:
@@ -387,6 +398,7 @@ class VioQuadEnv(gymnasium.Env):
         if est is None:
             parts = [np.zeros(n) for _, n, _, _ in self._state_layout()]
         else:
+            var = np.diag(est.cov)
             parts = [
                 est.p_WB - self._target_est,
                 est.v_WB,
@@ -394,13 +406,12 @@ class VioQuadEnv(gymnasium.Env):
                 est.omega_B_rad_s,
                 self._target_est,
                 self._target_v_est,
-                np.diag(est.cov)[3:6],
-                np.diag(est.cov)[6:9],
+                var[3:6],
+                var[6:9],
                 [float(health.tracked_features)],
             ]
         vec = np.nan_to_num(np.concatenate(parts).astype(np.float32), nan=0.0, posinf=1e6, neginf=-1e6)
-        space = self.observation_space if self.config.obs_mode == "state" else self.observation_space["state"]
-        return np.clip(vec, space.low, space.high)
+        return np.clip(vec, self._state_low, self._state_high)
 
     def _get_obs(self):
         state = self._state_vector()

@@ -142,11 +142,23 @@ class ClosedLoopSim:
         self._lights = SceneLights(self.sim.model) if self._lights_off else None
         self._body_id = self.sim.model.body(QUAD_BODY).id
         self._bounds = SCENE_BOUNDS_M.get(config.scene)
+        # Crash box: the scene bounds widened by 0.5 m (built once; read every low-level tick).
+        self._crash_lo = None if self._bounds is None else np.subtract(self._bounds[0], 0.5)
+        self._crash_hi = None if self._bounds is None else np.add(self._bounds[1], 0.5)
+        # truth() memo: the TruthState of one physics state, keyed on (time, qpos, qvel) (see truth()).
+        self._truth_key: bytes | None = None
+        self._truth: TruthState | None = None
+        self._truth_fed: TruthState | None = None
         self._pending: deque[tuple[float, CameraFrame]] = deque()
         self._wind_gust_W = np.zeros(3)
+        self._gust_decay: dict[tuple[float, float], tuple[float, float]] = {}
         self._step_count = 0
         self.last_frame: CameraFrame | None = None
         self.last_imu: ImuSample | None = None
+        self.simulate_imu = True
+        """False skips the IMU model (its own random stream) at every sample time: for a consumer that reads
+        no IMU sample, e.g. a ``ground-truth`` estimator under a state-only observation (the Gymnasium envs);
+        :attr:`last_imu` then stays as it was. The physics chunks keep their IMU-period boundaries."""
         self.frames_delivered = 0
         self.frames_dropped = 0
         self.estimator_failure = ""
@@ -175,9 +187,22 @@ class ClosedLoopSim:
         return self.sim.time_s
 
     def truth(self) -> TruthState:
-        """Ground truth now (never fed to an estimator other than ``ground-truth``)."""
-        R_WB, p_WB = self.sim.pose()
-        return TruthState(self.t_s, R_WB, p_WB, self.sim.velocity_W(), self.sim.angular_velocity_B())
+        """Ground truth now (never fed to an estimator other than ``ground-truth``); read-only arrays.
+
+        Memoized on the physics state: the readers (pose from the ``imu_quat`` sensor, velocity, gyro) are
+        functions of ``(time, qpos, qvel)`` after ``mj_forward``, which both :meth:`advance` and
+        ``Simulation.set_pose`` end with, so the same state returns the same record (the env reads the
+        truth several times per low-level tick: the ``ground-truth`` estimate, the crash test, ``info``).
+        """
+        data = self.sim.data
+        key = data.qpos.tobytes() + data.qvel.tobytes() + np.float64(data.time).tobytes()
+        if key != self._truth_key:
+            R_WB, p_WB = self.sim.pose()
+            tr = TruthState(self.t_s, R_WB, p_WB, self.sim.velocity_W(), self.sim.angular_velocity_B())
+            for arr in (tr.R_WB, tr.p_WB, tr.v_WB, tr.omega_B):
+                arr.setflags(write=False)
+            self._truth_key, self._truth = key, tr
+        return self._truth
 
     def estimate(self) -> StateEstimate | None:
         """The estimator's latest state (propagated to the newest IMU sample), or None before init.
@@ -194,12 +219,11 @@ class ClosedLoopSim:
 
     def crashed(self, airborne: bool) -> bool:
         """Crash test: contact once airborne, tilt beyond 80 deg, or leaving the scene bounds."""
-        R_WB, p_WB = self.sim.pose()
-        if R_WB[2, 2] < _COS_MAX_TILT:
+        tr = self.truth()
+        if tr.R_WB[2, 2] < _COS_MAX_TILT:
             return True
         if self._bounds is not None:
-            lo, hi = self._bounds
-            if (p_WB < np.subtract(lo, 0.5)).any() or (p_WB > np.add(hi, 0.5)).any():
+            if (tr.p_WB < self._crash_lo).any() or (tr.p_WB > self._crash_hi).any():
                 return True
         return airborne and self.sim.in_collision()
 
@@ -257,6 +281,9 @@ class ClosedLoopSim:
 
     def _feed_truth(self) -> None:
         tr = self.truth()
+        if tr is self._truth_fed:
+            return  # this physics state was already fed (same record, same estimate)
+        self._truth_fed = tr
         self.estimator.feed_truth(
             StateEstimate(t_s=tr.t_s, R_WB=tr.R_WB, p_WB=tr.p_WB, v_WB=tr.v_WB, omega_B_rad_s=tr.omega_B)
         )
@@ -266,8 +293,14 @@ class ClosedLoopSim:
         if w.gust_sigma_N <= 0.0 and not any(w.mean_force_W_N):
             return  # calm air: xfrc_applied stays zero
         if w.gust_sigma_N > 0.0:
-            a = np.exp(-dt / w.gust_time_constant_s)
-            noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * np.sqrt(1.0 - a * a)
+            # First-order Gauss-Markov gust: the decay and its noise scale depend on dt only (memoized).
+            key = (dt, w.gust_time_constant_s)
+            decay = self._gust_decay.get(key)
+            if decay is None:
+                a = np.exp(-dt / w.gust_time_constant_s)
+                decay = self._gust_decay[key] = (a, np.sqrt(1.0 - a * a))
+            a, scale = decay
+            noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * scale
             noise[2] = 0.0
             self._wind_gust_W = a * self._wind_gust_W + noise
         self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
@@ -296,7 +329,7 @@ class ClosedLoopSim:
             self.sim.step(thrusts_N, chunk)
             self._step_count += chunk
             done += chunk
-            if self._step_count % self._imu_every == 0:
+            if self.simulate_imu and self._step_count % self._imu_every == 0:
                 omega_B, f_B = self.config.faults.imu_input(
                     self.sim.angular_velocity_B(), self.sim.specific_force_B()
                 )

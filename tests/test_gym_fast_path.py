@@ -1,0 +1,150 @@
+"""The Gymnasium hot-path speed-ups change no number: the fast env against the pre-speed-up code path.
+
+The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the memoized gust
+decay, the SE(3) controller's gain constants built once, ``SE3Controller.thrusts`` and the 3-vector
+``lie.cross`` are patched back, and the IMU model runs although nothing reads it, in the second env
+of each pair, to the code they replaced (copied below), and both envs are stepped with the same seed and
+the same actions: observations, rewards, terminations and ``info`` must agree bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from viotb.controllers import se3
+from viotb.envs.gym.base import VioQuadEnv
+from viotb.envs.gym.hover import HoverEnv
+from viotb.envs.run.closed_loop import _COS_MAX_TILT, ClosedLoopSim, TruthState
+from viotb.vio.types import StateEstimate
+
+
+def _old_cross(a, b):
+    out = np.empty(np.broadcast_shapes(np.shape(a), np.shape(b)))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
+def _old_truth(self):
+    R_WB, p_WB = self.sim.pose()
+    return TruthState(self.t_s, R_WB, p_WB, self.sim.velocity_W(), self.sim.angular_velocity_B())
+
+
+def _old_feed_truth(self):
+    tr = self.truth()
+    self.estimator.feed_truth(
+        StateEstimate(t_s=tr.t_s, R_WB=tr.R_WB, p_WB=tr.p_WB, v_WB=tr.v_WB, omega_B_rad_s=tr.omega_B)
+    )
+
+
+def _old_crashed(self, airborne):
+    R_WB, p_WB = self.sim.pose()
+    if R_WB[2, 2] < _COS_MAX_TILT:
+        return True
+    if self._bounds is not None:
+        lo, hi = self._bounds
+        if (p_WB < np.subtract(lo, 0.5)).any() or (p_WB > np.add(hi, 0.5)).any():
+            return True
+    return airborne and self.sim.in_collision()
+
+
+def _old_apply_wind(self, dt):
+    w = self.config.wind
+    if w.gust_sigma_N <= 0.0 and not any(w.mean_force_W_N):
+        return
+    if w.gust_sigma_N > 0.0:
+        a = np.exp(-dt / w.gust_time_constant_s)
+        noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * np.sqrt(1.0 - a * a)
+        noise[2] = 0.0
+        self._wind_gust_W = a * self._wind_gust_W + noise
+    self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
+
+
+def _old_integrate(self, t_s, e_p):
+    if self._last_t_s is not None:
+        dt = t_s - self._last_t_s
+        if 0.0 < dt <= se3._MAX_INTEGRATION_STEP_S:
+            self._integral_m_s = self._integral_m_s + e_p * dt
+    self._last_t_s = float(t_s)
+    ki = self._gains.ki_N_m_s
+    limit = np.full(3, np.inf)
+    np.divide(self._gains.integral_limit_N, ki, out=limit, where=ki > 0.0)
+    self._integral_m_s = np.clip(self._integral_m_s, -limit, limit)
+
+
+def _old_limit_tilt(self, force_W):
+    out = force_W.copy()
+    out[2] = max(out[2], self._gains.min_thrust_fraction * self._vehicle.hover_thrust_N)
+    horizontal = float(np.linalg.norm(out[:2]))
+    max_horizontal = out[2] * np.tan(self._gains.max_tilt_rad)
+    if horizontal > max_horizontal:
+        out[:2] *= max_horizontal / horizontal
+    return out
+
+
+def _assert_same(a, b, where):
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _assert_same(a[k], b[k], f"{where}[{k}]")
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, b, err_msg=where)
+    else:
+        assert a == b or (a != a and b != b), f"{where}: {a!r} != {b!r}"  # NaN == NaN here
+
+
+def _rollout(kwargs, actions, old: bool, monkeypatch):
+    with monkeypatch.context() as m:
+        if old:
+            m.setattr(ClosedLoopSim, "truth", _old_truth)
+            m.setattr(ClosedLoopSim, "_feed_truth", _old_feed_truth)
+            m.setattr(ClosedLoopSim, "crashed", _old_crashed)
+            m.setattr(ClosedLoopSim, "_apply_wind", _old_apply_wind)
+            m.setattr(VioQuadEnv, "_reads_imu", lambda self: True)
+            m.setattr(se3.SE3Controller, "_integrate", _old_integrate)
+            m.setattr(se3.SE3Controller, "_limit_tilt", _old_limit_tilt)
+            m.setattr(se3, "cross", _old_cross)
+            m.setattr(se3.SE3Controller, "thrusts", lambda self, t, x, sp: self.update(t, x, sp).thrusts_N)
+        env = HoverEnv(**kwargs)
+        out = [env.reset(seed=3)]
+        for a in actions:
+            step = env.step(a)
+            out.append(step)
+            if step[2]:
+                break
+        env.close()
+    return out
+
+
+@pytest.mark.parametrize(
+    ("estimator", "action_type", "n_steps"),
+    [("ground-truth", "position", 60), ("ground-truth", "velocity", 40), ("msckf", "position", 25)],
+)
+def test_fast_path_matches_old_code_bit_for_bit(estimator, action_type, n_steps, monkeypatch):
+    """Same seed, same actions: the patched-back old code and the fast code give identical steps."""
+    rng = np.random.default_rng(7)
+    actions = rng.uniform(-0.3, 0.3, size=(n_steps, 4)).astype(np.float32)
+    kwargs = {"estimator": estimator, "frontend": "sim", "action_type": action_type}
+    new = _rollout(kwargs, actions, old=False, monkeypatch=monkeypatch)
+    old = _rollout(kwargs, actions, old=True, monkeypatch=monkeypatch)
+    assert len(new) == len(old) > 10
+    for k, (step_new, step_old) in enumerate(zip(new, old, strict=True)):
+        for j, (x, y) in enumerate(zip(step_new, step_old, strict=True)):
+            _assert_same(x, y, f"step {k} item {j}")
+
+
+def test_truth_memo_follows_set_pose_and_stays_read_only():
+    """A kinematic placement without a physics step must not return the previous pose (memo key)."""
+    loop = ClosedLoopSim.__new__(ClosedLoopSim)  # only the truth readers are exercised below
+    from viotb.envs.sim.simulation import Simulation
+
+    loop.sim = Simulation("quadrotor", "textured_room")
+    loop._truth_key, loop._truth = None, None
+    first = loop.truth()
+    assert loop.truth() is first
+    loop.sim.set_pose(np.eye(3), first.p_WB + np.array([0.3, 0.0, 0.0]))
+    moved = loop.truth()
+    np.testing.assert_allclose(moved.p_WB - first.p_WB, [0.3, 0.0, 0.0], atol=1e-12)
+    with pytest.raises(ValueError):
+        moved.p_WB[0] = 0.0
