@@ -197,11 +197,11 @@ def log_se3(T: np.ndarray) -> np.ndarray:
 
 
 def skew_batch(v: np.ndarray) -> np.ndarray:
-    """Stacked :func:`skew`: vectors, shape (N, 3) -> cross-product matrices, shape (N, 3, 3)."""
-    out = np.zeros((v.shape[0], 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    """Stacked :func:`skew`: vectors, shape (..., 3) -> cross-product matrices, shape (..., 3, 3)."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
     return out
 
 

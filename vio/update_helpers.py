@@ -21,18 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.stats
-
-
-def skew_batch(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices of vectors ``v`` (..., 3) -> (..., 3, 3)."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1] = -v[..., 2]
-    out[..., 0, 2] = v[..., 1]
-    out[..., 1, 0] = v[..., 2]
-    out[..., 1, 2] = -v[..., 0]
-    out[..., 2, 0] = -v[..., 1]
-    out[..., 2, 1] = v[..., 0]
-    return out
+from viotb.vio.lie import skew_batch
 
 
 @dataclass(frozen=True)

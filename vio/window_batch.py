@@ -15,21 +15,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from viotb.vio.lie import log_so3
+from viotb.vio.lie import log_so3, skew_batch
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise, gravity_W
 
 NX = 15
 """Error-state size of one keyframe ``[dtheta, dp, dv, dbg, dba]`` (as :data:`window_factors.NX`)."""
-
-
-def skew_batch(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices of K vectors (K, 3) -> (K, 3, 3)."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return out
 
 
 def _series(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
