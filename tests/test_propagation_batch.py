@@ -6,8 +6,11 @@ integrates the mean over the whole span and propagates the covariance once; both
 relative on random IMU streams, with first estimates and duplicate timestamps.
 """
 
+from functools import partial
+
 import numpy as np
 import pytest
+from random_states import random_imu_values
 from viotb.vio.lie import exp_so3, exp_so3_batch, log_so3, right_jacobian_so3, right_jacobian_so3_batch
 from viotb.vio.propagator import (
     Integration,
@@ -17,18 +20,9 @@ from viotb.vio.propagator import (
     propagate_values,
     select_imu_readings,
 )
-from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
 
-
-def _random_imu(rng: np.random.Generator) -> ImuValues:
-    return ImuValues(
-        exp_so3(rng.normal(size=3)),
-        rng.normal(0, 2.0, 3),
-        rng.normal(0, 1.0, 3),
-        rng.normal(0, 0.02, 3),
-        rng.normal(0, 0.2, 3),
-    )
+_random_imu = partial(random_imu_values, sigma_p_m=2.0, sigma_bg_rad_s=0.02, sigma_ba_m_s2=0.2)
 
 
 def _random_stream(rng: np.random.Generator, n: int):

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from random_states import random_imu_values
 from viotb.vio.lie import exp_so3, log_so3, skew
 from viotb.vio.propagator import (
     ImuBuffer,
@@ -14,16 +15,6 @@ from viotb.vio.propagator import (
 )
 from viotb.vio.state import IMU_BLOCK, ImuValues, State, is_psd, marginal_covariance
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample, gravity_W
-
-
-def _imu(rng: np.random.Generator) -> ImuValues:
-    return ImuValues(
-        exp_so3(rng.normal(size=3)),
-        rng.normal(size=3),
-        rng.normal(size=3),
-        rng.normal(0, 0.01, 3),
-        rng.normal(0, 0.1, 3),
-    )
 
 
 def _boxplus(x: ImuValues, d: np.ndarray) -> ImuValues:
@@ -62,7 +53,7 @@ def test_select_imu_readings_interpolates_the_ends():
 @pytest.mark.parametrize("method", [Integration.DISCRETE, Integration.RK4])
 def test_transition_matrix_matches_central_differences(method):
     rng = np.random.default_rng(0)
-    x0 = _imu(rng)
+    x0 = random_imu_values(rng)
     t = np.linspace(0.0, 0.05, 6)
     gyro = rng.normal(0, 1.0, (6, 3))
     accel = rng.normal(0, 3.0, (6, 3)) + np.array([0, 0, 9.81])
@@ -124,7 +115,7 @@ def _yaw_position_nullspace(x: ImuValues) -> np.ndarray:
 @pytest.mark.parametrize("method", [Integration.DISCRETE, Integration.RK4])
 def test_fej_transition_maps_the_unobservable_directions(method):
     rng = np.random.default_rng(1)
-    x0 = _imu(rng)
+    x0 = random_imu_values(rng)
     fej = _boxplus(x0, rng.normal(0, 0.05, 15))  # first estimates differ from the current (updated) values
     t = np.linspace(0.0, 0.05, 6)
     gyro = rng.normal(0, 1.0, (6, 3))
@@ -151,7 +142,7 @@ def test_buffer_rejects_nan_and_out_of_order_with_clear_messages():
 def test_propagate_and_clone_keeps_covariance_psd_and_time_offset_jacobian():
     rng = np.random.default_rng(0)
     noise = ImuNoise()
-    x0 = _imu(rng)
+    x0 = random_imu_values(rng)
     x0.v_WB = np.array([1.0, 0.5, -0.2])
 
     def run(offset_s: float) -> State:

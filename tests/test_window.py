@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from data_paths import EUROC_MICRO
+from random_states import random_imu_values
 from viotb.vio.lie import exp_so3
 from viotb.vio.marginalization import schur_complement
 from viotb.vio.preintegration import ImuPreintegration
@@ -52,14 +53,6 @@ def test_schur_rejects_bad_shapes_and_indices():
 
 
 # ----------------------------------------------------------------------------------------- Jacobians
-def _random_values(rng: np.random.Generator) -> ImuValues:
-    return ImuValues(
-        exp_so3(rng.normal(size=3)),
-        rng.normal(size=3),
-        rng.normal(size=3),
-        0.01 * rng.normal(size=3),
-        0.1 * rng.normal(size=3),
-    )
 
 
 def _numeric_jacobian(fun, x: ImuValues, eps: float = 1e-6) -> np.ndarray:
@@ -82,7 +75,7 @@ def test_imu_factor_jacobians_match_central_differences():
     pre = ImuPreintegration(np.array([0.01, -0.02, 0.005]), np.array([0.1, 0.0, -0.05]), noise)
     for _ in range(40):
         pre.integrate(rng.normal(size=3) + [0, 0, 9.81], rng.normal(size=3), 0.005)
-    xi, xj = _random_values(rng), _random_values(rng)
+    xi, xj = random_imu_values(rng), random_imu_values(rng)
     r, J_i, J_j, cov = imu_factor(pre, xi, xj, noise)
     assert r.shape == (15,) and cov.shape == (15, 15)
     num_i = _numeric_jacobian(lambda x: imu_factor(pre, x, xj, noise)[0], xi)
@@ -98,7 +91,7 @@ def test_imu_factor_residual_zero_at_prediction():
     pre = ImuPreintegration(np.zeros(3), np.zeros(3), noise)
     for _ in range(20):
         pre.integrate(rng.normal(size=3) + [0, 0, 9.81], rng.normal(size=3), 0.005)
-    xi = _random_values(rng)
+    xi = random_imu_values(rng)
     R, p, v = pre.predict(
         xi.R_WB, xi.p_WB, xi.v_WB, np.array([0.0, 0.0, -9.81]), xi.gyro_bias_rad_s, xi.accel_bias_m_s2
     )
@@ -141,7 +134,7 @@ def test_reprojection_jacobians_match_central_differences():
 def test_retract_boxminus_roundtrip():
     """``retract(x0, x [-] x0) == x``."""
     rng = np.random.default_rng(3)
-    x0, x = _random_values(rng), _random_values(rng)
+    x0, x = random_imu_values(rng), random_imu_values(rng)
     back = retract(x0, boxminus(x, x0))
     np.testing.assert_allclose(back.R_WB, x.R_WB, atol=1e-12)
     np.testing.assert_allclose(back.p_WB, x.p_WB, atol=1e-12)

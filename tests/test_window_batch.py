@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
+from random_states import random_imu_values
 from viotb.vio.lie import exp_so3, log_so3, right_jacobian_inv_so3, right_jacobian_so3
-from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
 from viotb.vio.window_batch import (
     ImuFactorStack,
@@ -18,16 +18,6 @@ from viotb.vio.window_batch import (
     stack_values,
 )
 from viotb.vio.window_factors import boxminus, imu_factor, preintegrate
-
-
-def _values(rng: np.random.Generator) -> ImuValues:
-    return ImuValues(
-        exp_so3(rng.normal(size=3)),
-        rng.normal(size=3),
-        rng.normal(size=3),
-        0.01 * rng.normal(size=3),
-        0.1 * rng.normal(size=3),
-    )
 
 
 def test_so3_maps_match_lie_including_small_and_near_pi_angles():
@@ -53,12 +43,16 @@ def test_stacked_imu_factors_match_imu_factor():
     """Residuals, Jacobians and square-root information of 4 factors equal ``imu_factor``'s (1e-12)."""
     rng = np.random.default_rng(1)
     noise = ImuNoise()
-    xs = [_values(rng) for _ in range(5)]
+    xs = [random_imu_values(rng) for _ in range(5)]
     imu = []
     for k in range(4):
         t = np.arange(25) * 0.005
         pre = preintegrate(
-            t, rng.normal(size=(25, 3)), rng.normal(size=(25, 3)) + [0, 0, 9.81], _values(rng), noise
+            t,
+            rng.normal(size=(25, 3)),
+            rng.normal(size=(25, 3)) + [0, 0, 9.81],
+            random_imu_values(rng),
+            noise,
         )
         imu.append((k, pre))
     stack = ImuFactorStack.build(imu, noise)
@@ -83,6 +77,6 @@ def test_integrate_gyro_is_the_preintegrated_rotation():
     rng = np.random.default_rng(2)
     t = np.cumsum(rng.uniform(0.004, 0.006, size=30))
     gyro = rng.normal(size=(30, 3)) * 3.0
-    x = _values(rng)
+    x = random_imu_values(rng)
     pre = preintegrate(t, gyro, np.tile([0.0, 0.0, 9.81], (30, 1)), x, ImuNoise())
     np.testing.assert_allclose(integrate_gyro(t, gyro, x.gyro_bias_rad_s), pre.delta_R, atol=1e-12)
