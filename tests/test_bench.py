@@ -66,3 +66,10 @@ def test_bench_rejects_unknown_sections():
 @pytest.mark.slow
 def test_bench_every_section():
     _check(run_bench(SECTIONS, seconds=2.0, repeats=1), SECTIONS)
+
+
+def test_bench_record_repeats_reuse_their_folder():
+    """Repeats record into one temporary folder; the second replaces the first, not stop the bench."""
+    result = run_bench(("record",), seconds=0.5, repeats=2)
+    _check(result, ("record",))
+    assert result["record"]["realtime_factor_median"] > 0

@@ -60,7 +60,7 @@ def run_bench(
 
             rtfs = []
             for k in range(repeats if "record" in sections else 1):
-                rec = record_scenario("figure8", rec_dir, seed=k, seconds=seconds)
+                rec = record_scenario("figure8", rec_dir, seed=k, seconds=seconds, overwrite=True)
                 rtfs.append(rec["realtime_factor"])
             out["record"] = {"scenario": "figure8", "realtime_factor_median": float(np.median(rtfs)), **rec}
         done += 1
