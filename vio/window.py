@@ -54,6 +54,7 @@ from viotb.vio.window_factors import (
     predict_covariance,
     preintegrate,
     reprojection,
+    repropagate,
     retract,
 )
 from viotb.vio.window_map import (
@@ -159,6 +160,7 @@ class WindowEstimator:
         self._version = 0
         self._est_cache: tuple[int, float, StateEstimate] | None = None
         self.solve_times_s: list[float] = []
+        self.solve_iterations: list[int] = []
 
     # ---------------------------------------------------------------------------------------- protocol
     def initialize(self, init: object) -> None:
@@ -373,14 +375,8 @@ class WindowEstimator:
         t0 = time.perf_counter()
         p = self.params
         # 0. Re-integrate preintegrations whose bias moved far from its linearization point (lesson ch. 5).
-        for k, link in enumerate(self.links):
-            xi = self.keyframes[k].x
-            if (
-                np.linalg.norm(xi.gyro_bias_rad_s - link.pre.gyro_bias_rad_s) > p.repropagate_gyro_bias_rad_s
-                or np.linalg.norm(xi.accel_bias_m_s2 - link.pre.accel_bias_m_s2)
-                > p.repropagate_accel_bias_m_s2
-            ):
-                link.pre = preintegrate(*link.readings, xi, self.noise)
+        tol = (p.repropagate_gyro_bias_rad_s, p.repropagate_accel_bias_m_s2)
+        repropagate(self.links, [kf.x for kf in self.keyframes], self.noise, *tol)
         lm_ids = sorted(self.landmarks)
         pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
         obs = observations(self.keyframes, lm_ids)
@@ -389,9 +385,10 @@ class WindowEstimator:
         still = [k for k, kf in enumerate(self.keyframes) if kf.still]
         no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
         factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
-        xs, pts, sys = levenberg_marquardt(
-            xs, pts, factors, self._weights, p.max_iterations, p.initial_damping, p.relative_tolerance
-        )
+        lm = (p.max_iterations, p.initial_damping, p.relative_tolerance, p.min_cost_decrease)
+        sol = levenberg_marquardt(xs, pts, factors, self._weights, *lm)
+        xs, pts, sys = sol.xs, sol.pts, sol.system
+        self.solve_iterations.append(sol.iterations)
         for kf, x in zip(self.keyframes, xs, strict=True):
             kf.x = x
         for j, fid in enumerate(lm_ids):

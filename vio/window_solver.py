@@ -19,8 +19,8 @@ from viotb.vio.marginalization import LinearPrior
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
-from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, stack_values
-from viotb.vio.window_factors import NX, reprojection, retract
+from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, retract_batch, stack_values
+from viotb.vio.window_factors import NX, reprojection
 
 
 @dataclass(frozen=True)
@@ -144,14 +144,20 @@ def prepare(f: Factors, w8: FactorWeights, n_kf: int, n_lm: int) -> PreparedFact
     sums = []
     for obs in (f.obs, f.obs_right):
         kf_i, lm_i = (np.zeros(0, dtype=np.int64),) * 2 if obs is None else obs[:2]
-        M, ones, col = len(kf_i), np.ones(len(kf_i)), np.arange(len(kf_i))
-        sums.append(
-            (
-                sparse.csr_matrix((ones, (kf_i, col)), shape=(n_kf, M)),
-                sparse.csr_matrix((ones, (lm_i, col)), shape=(n_lm, M)),
-            )
-        )
+        sums.append((_summing_matrix(kf_i, n_kf), _summing_matrix(lm_i, n_lm)))
     return PreparedFactors(ImuFactorStack.build(f.imu, w8.noise), R0, rest0, sums)
+
+
+def _summing_matrix(row: np.ndarray, n_rows: int) -> sparse.csr_matrix:
+    """The 0/1 matrix (n_rows, M) with a one at ``(row[m], m)``: its product sums the M terms per row.
+
+    Built from its CSR arrays directly (a stable sort of ``row``), which is several times faster than
+    from coordinates.
+    """
+    row = np.asarray(row, dtype=np.int64)
+    order = np.argsort(row, kind="stable")
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(row, minlength=n_rows))])
+    return sparse.csr_matrix((np.ones(len(row)), order, indptr), shape=(n_rows, len(row)))
 
 
 def linearize(
@@ -187,10 +193,13 @@ def linearize(
         J = np.concatenate([W @ J_i, W @ J_j], axis=2)
         JT = np.swapaxes(J, 1, 2)
         JtJ, Jtr = JT @ J, np.einsum("kij,kj->ki", JT, r_w)
-        for i, k in enumerate(prep.imu.k.tolist()):
-            sl = slice(k * NX, (k + 2) * NX)
-            H[sl, sl] += JtJ[i]
-            g[sl] += Jtr[i]
+        # Blocks (k, k), (k, k+1), (k+1, k), (k+1, k+1) of H seen as (N, NX, N, NX); within each of the
+        # four, the factors' keyframes differ, so fancy-indexed += adds every factor.
+        k_i, H4, g2 = prep.imu.k, H.reshape(N, NX, N, NX), g.reshape(N, NX)
+        for a in (0, 1):
+            g2[k_i + a] += Jtr[:, a * NX : (a + 1) * NX]
+            for b in (0, 1):
+                H4[k_i + a, :, k_i + b, :] += JtJ[:, a * NX : (a + 1) * NX, b * NX : (b + 1) * NX]
         cost += 0.5 * float(np.sum(r_w * r_w))
         n_res += NX * len(prep.imu.k)
     # b. Linear prior (OKVIS eq. 9): 0.5 dx^T H dx + g^T dx at dx = x [-] x0.
@@ -330,6 +339,44 @@ def schur_reduce(sys: LinearSystem, lam: float) -> tuple[np.ndarray, np.ndarray,
     return S, g, H_ll_inv
 
 
+@dataclass(frozen=True)
+class SolveResult:
+    """Outcome of :func:`levenberg_marquardt`.
+
+    Attributes:
+        xs: Optimized keyframe values (N).
+        pts: Optimized landmarks in W (m), shape (L, 3).
+        system: The system linearized at ``(xs, pts)``.
+        iterations: Trial steps taken (each linearized at its trial point; the budget's unit).
+        converged: A stopping rule fired (small predicted or actual decrease) before the budget ran out.
+    """
+
+    xs: list[ImuValues]
+    pts: np.ndarray
+    system: LinearSystem
+    iterations: int
+    converged: bool
+
+
+def predicted_decrease(sys: LinearSystem, lam: float, dx: np.ndarray, dl: np.ndarray) -> float:
+    """Decrease of the Gauss-Newton model ``-g^T h - 1/2 h^T H h`` for the damped step ``h = (dx, dl)``.
+
+    With ``(H + lam D) h = -g`` (``D`` the diagonal of H) it is ``1/2 (lam h^T D h - g^T h)`` (Madsen,
+    Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004, eq. 3.14), which needs no
+    product with H.
+
+    Args:
+        sys: The system the step was solved from.
+        lam: The damping of the step (relative to the diagonal).
+        dx: Keyframe step, shape (N NX,).
+        dl: Landmark step, shape (L, 3).
+    """
+    d_pose = np.diag(sys.H)
+    d_lm = np.einsum("lii->li", sys.H_ll)
+    damped = float(d_pose @ (dx * dx) + np.sum(d_lm * dl * dl))
+    return 0.5 * (lam * damped - float(sys.g @ dx) - float(np.sum(sys.g_l * dl)))
+
+
 def levenberg_marquardt(
     xs: list[ImuValues],
     pts: np.ndarray,
@@ -338,45 +385,59 @@ def levenberg_marquardt(
     max_iterations: int,
     initial_damping: float,
     relative_tolerance: float = 1e-6,
-) -> tuple[list[ImuValues], np.ndarray, LinearSystem]:
+    min_decrease: float = 0.0,
+) -> SolveResult:
     """Levenberg-Marquardt on the manifold, landmarks eliminated by the Schur complement in each solve.
 
     A step is kept when it does not raise the cost (damping / 10, at least 1e-8), else the damping grows
-    10x; iterations stop early when a kept step lowers the cost by less than ``relative_tolerance`` of it.
+    10x. Each trial step costs one linearization at the trial point; ``max_iterations`` bounds them, a
+    deterministic budget: the same problem always stops at the same step, and
+    a solve cut short continues from its values at the next keyframe (they are the next solve's start).
+    The iterations stop early when the model's predicted decrease of the next step is below
+    ``min_decrease`` (before linearizing there: the step is not taken), or when a kept step lowered the cost
+    by less than ``relative_tolerance`` of it.
 
     Args:
         xs: Initial keyframe values (N).
         pts: Initial landmarks in W (m), shape (L, 3).
         f: The factors.
         w8: Their noise models and the extrinsics.
-        max_iterations: Most iterations.
+        max_iterations: Most trial steps (>= 0; 0 only linearizes at the initial values).
         initial_damping: Initial damping, relative to the diagonal.
         relative_tolerance: Convergence: a kept step that lowers the cost by less than this fraction.
+        min_decrease: Convergence: a step whose predicted decrease of the cost (``0.5 chi^2`` units) is below
+            this is not taken.
 
     Returns:
-        ``(xs, pts, system)``: the optimized values and the system linearized there.
+        The optimized values and the system linearized there (:class:`SolveResult`).
     """
+    if max_iterations < 0:
+        raise ValueError(f"levenberg_marquardt: max_iterations must be >= 0, got {max_iterations}")
     prep = prepare(f, w8, len(xs), len(pts))
     sys = linearize(xs, pts, f, w8, prep)
     lam = initial_damping
     pidx = pose_index(len(xs))
-    for _ in range(max_iterations):
+    n_it = 0
+    while n_it < max_iterations:
         S, g_red, H_ll_inv = schur_reduce(sys, lam)
         dx = np.linalg.solve(S, -g_red)
         rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
         dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
-        xs_new = [retract(x, dx[k * NX : (k + 1) * NX]) for k, x in enumerate(xs)]
+        if predicted_decrease(sys, lam, dx, dl) < min_decrease:
+            return SolveResult(xs, pts, sys, n_it, True)
+        xs_new = retract_batch(xs, dx)
         pts_new = pts + dl
         sys_new = linearize(xs_new, pts_new, f, w8, prep)
+        n_it += 1
         if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
             small = sys.cost - sys_new.cost < relative_tolerance * sys.cost
             xs, pts, sys = xs_new, pts_new, sys_new
             lam = max(lam / 10.0, 1e-8)
             if small:
-                break
+                return SolveResult(xs, pts, sys, n_it, True)
         else:
             lam *= 10.0
-    return xs, pts, sys
+    return SolveResult(xs, pts, sys, n_it, False)
 
 
 def newest_keyframe_covariance(sys: LinearSystem) -> np.ndarray:
