@@ -61,6 +61,7 @@ from viotb.vio.window_map import (
     ImuLink,
     Keyframe,
     drop_landmark,
+    fix_first_estimates,
     landmark_candidates,
     observations,
     track_matrix,
@@ -77,16 +78,8 @@ from viotb.vio.window_solver import (
 )
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
-__all__ = [
-    "NX",
-    "WindowEstimator",
-    "WindowParams",
-    "boxminus",
-    "imu_factor",
-    "preintegrate",
-    "reprojection",
-    "retract",
-]
+__all__ = ["NX", "WindowEstimator", "WindowParams", "boxminus", "imu_factor", "preintegrate", "reprojection"]
+__all__ += ["retract"]
 
 
 class WindowEstimator:
@@ -386,7 +379,8 @@ class WindowEstimator:
         no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
         factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
         lm = (p.max_iterations, p.initial_damping, p.relative_tolerance, p.min_cost_decrease)
-        sol = levenberg_marquardt(xs, pts, factors, self._weights, *lm)
+        fej = [kf.x_fej for kf in self.keyframes] if p.first_estimate_jacobians else None
+        sol = levenberg_marquardt(xs, pts, factors, self._weights, *lm, fej)
         xs, pts, sys = sol.xs, sol.pts, sol.system
         self.solve_iterations.append(sol.iterations)
         for kf, x in zip(self.keyframes, xs, strict=True):
@@ -444,7 +438,9 @@ class WindowEstimator:
         # 1. Factors touching the marginalized variables: the prior, the oldest IMU link, its zero-velocity
         #    and no-motion factors, and the observations of its landmarks.
         nm = [1] if old.still and self.keyframes[1].still else []
-        sys = linearize(xs, pts, self._factors([0], [0] if old.still else [], nm, obs, obs1), self._weights)
+        f = self._factors([0], [0] if old.still else [], nm, obs, obs1)
+        xs_lin = fix_first_estimates(self.keyframes) if self.params.first_estimate_jacobians else None
+        sys = linearize(xs, pts, f, self._weights, xs_lin=xs_lin)
         # 2. Eliminate those landmarks, then the oldest keyframe.
         S, g_red, _ = schur_reduce(sys, 0.0)
         H_p, g_p, _ = schur_complement(S, g_red, np.arange(NX))

@@ -265,14 +265,15 @@ class ImuFactorStack:
 
 
 def imu_factors(
-    s: ImuFactorStack, R: np.ndarray, rest: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    s: ImuFactorStack, R: np.ndarray, rest: np.ndarray, jacobians: bool = True
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Residuals and Jacobians of the stacked IMU factors (:func:`window_factors.imu_factor`, batched).
 
     Args:
         s: The factors.
         R: Keyframe orientations ``R_WB``, shape (N, 3, 3).
         rest: Keyframe ``[p_WB, v_WB, b_g, b_a]``, shape (N, 12) (:func:`stack_values`).
+        jacobians: Also the Jacobians (else None for both).
 
     Returns:
         ``(r (K, 15), J_i (K, 15, 15), J_j (K, 15, 15))``, not whitened.
@@ -300,6 +301,8 @@ def imu_factors(
     u_p = mv(Ri_T, pj - pi - vi * dt - 0.5 * g * dt * dt)
     r_R = log_so3_batch(np.swapaxes(dRc, 1, 2) @ Ri_T @ Rj)
     r = np.concatenate([r_R, u_v - dvc, u_p - dpc, bgj - bgi, baj - bai], axis=1)
+    if not jacobians:
+        return r, None, None
     # 3. Jacobians w.r.t. [dtheta, dp, dv, dbg, dba] of i and j.
     Jr_inv = right_jacobian_inv_batch(r_R)
     J_i = np.zeros((K, NX, NX))

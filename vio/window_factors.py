@@ -158,6 +158,15 @@ def imu_factor(
     return r, J_i, J_j, cov
 
 
+def project(
+    R_WB: np.ndarray, p_WB: np.ndarray, p_W: np.ndarray, R_BC: np.ndarray, p_BC: np.ndarray
+) -> np.ndarray:
+    """Normalized projections ``z (M, 2)`` of :func:`reprojection` without the Jacobians (same arguments)."""
+    p_C = (np.einsum("mji,mj->mi", R_WB, p_W - p_WB) - p_BC) @ R_BC
+    Z = p_C[:, 2]
+    return p_C[:, :2] / np.where(np.abs(Z) < 1e-9, 1e-9, Z)[:, None]
+
+
 def reprojection(
     R_WB: np.ndarray, p_WB: np.ndarray, p_W: np.ndarray, R_BC: np.ndarray, p_BC: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -36,6 +36,10 @@ class WindowParams:
             circle, head walk) the ATE moved by at most 0.4 mm and the slowest frames (p99) took ~20 % less.
         min_cost_decrease: The iterations also stop, without taking the step, when its predicted cost
             decrease (``0.5 chi^2`` units, :func:`viotb.vio.window_solver.predicted_decrease`) is below this.
+        first_estimate_jacobians: Evaluate the Jacobians of every factor on a keyframe that the
+            marginalization prior holds at the keyframe's values when the prior first took it
+            (:func:`viotb.vio.window_solver.linearize`), so the window gains no spurious information on
+            global position and yaw.
         repropagate_gyro_bias_rad_s: Re-integrate a preintegration when the gyro bias moved this far (rad/s)
             from its linearization point (first-order correction otherwise, Forster eq. 44).
         repropagate_accel_bias_m_s2: Same for the accelerometer bias (m/s^2).
@@ -81,6 +85,7 @@ class WindowParams:
     initial_damping: float = 1e-4
     relative_tolerance: float = 1e-4
     min_cost_decrease: float = 0.05
+    first_estimate_jacobians: bool = False
     repropagate_gyro_bias_rad_s: float = 0.01
     repropagate_accel_bias_m_s2: float = 0.2
     zero_velocity: ZeroVelocityParams = field(
