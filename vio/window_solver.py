@@ -367,6 +367,8 @@ class SolveResult:
         system: The system linearized at ``(xs, pts)``.
         iterations: Trial steps taken (each linearized at its trial point; the budget's unit).
         converged: A stopping rule fired (small predicted or actual decrease) before the budget ran out.
+        damping: The damping the next step would use: a solve continued later (a warm start) starts from it,
+            so a rejected last step is not retried as it was.
     """
 
     xs: list[ImuValues]
@@ -374,6 +376,7 @@ class SolveResult:
     system: LinearSystem
     iterations: int
     converged: bool
+    damping: float
 
 
 def predicted_decrease(sys: LinearSystem, lam: float, dx: np.ndarray, dl: np.ndarray) -> float:
@@ -451,7 +454,7 @@ def levenberg_marquardt(
         rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
         dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
         if predicted_decrease(sys, lam, dx, dl) < min_decrease:
-            return SolveResult(xs, pts, sys, n_it, True)
+            return SolveResult(xs, pts, sys, n_it, True, lam)
         xs_new = retract_batch(xs, dx)
         pts_new = pts + dl
         sys_new = linearize(xs_new, pts_new, f, w8, prep, lin(xs_new))
@@ -461,10 +464,10 @@ def levenberg_marquardt(
             xs, pts, sys = xs_new, pts_new, sys_new
             lam = max(lam / 10.0, 1e-8)
             if small:
-                return SolveResult(xs, pts, sys, n_it, True)
+                return SolveResult(xs, pts, sys, n_it, True, lam)
         else:
             lam *= 10.0
-    return SolveResult(xs, pts, sys, n_it, False)
+    return SolveResult(xs, pts, sys, n_it, False, lam)
 
 
 def newest_keyframe_covariance(sys: LinearSystem) -> np.ndarray:
