@@ -56,6 +56,7 @@ from viotb.vio.window_factors import (
     reprojection,
     repropagate,
     retract,
+    seen_behind,
 )
 from viotb.vio.window_map import (
     ImuLink,
@@ -78,8 +79,16 @@ from viotb.vio.window_solver import (
 )
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
-__all__ = ["NX", "WindowEstimator", "WindowParams", "boxminus", "imu_factor", "preintegrate", "reprojection"]
-__all__ += ["retract"]
+__all__ = [
+    "NX",
+    "WindowEstimator",
+    "WindowParams",
+    "boxminus",
+    "imu_factor",
+    "preintegrate",
+    "reprojection",
+    "retract",
+]
 
 
 class WindowEstimator:
@@ -395,15 +404,11 @@ class WindowEstimator:
         self._used = len(lm_ids)
         # 6. Outliers and landmarks behind a camera leave the window with their observations.
         if len(lm_ids):
-            bad = sys.max_err > p.outlier_threshold
             cams = [(obs, self._R_BC, self._p_BC)]
             if self.calib_right is not None:
                 cams.append((obs1, self.calib_right.R_BC, np.asarray(self.calib_right.p_BC, dtype=float)))
-            for (kf_i, lm_i, _), R_BC, p_BC in cams:
-                R = np.stack([x.R_WB for x in xs])[kf_i]
-                P = np.stack([x.p_WB for x in xs])[kf_i]
-                _, depth, _, _ = reprojection(R, P, pts[lm_i], R_BC, p_BC)
-                bad[lm_i[depth < p.triangulation.min_depth_m]] = True
+            behind = seen_behind(xs, pts, cams, p.triangulation.min_depth_m)
+            bad = (sys.max_err > p.outlier_threshold) | behind
             for j in np.nonzero(bad)[0]:
                 drop_landmark(self.keyframes, self.landmarks, lm_ids[j])
             self._n_bad += int(np.sum(bad))

@@ -167,6 +167,30 @@ def project(
     return p_C[:, :2] / np.where(np.abs(Z) < 1e-9, 1e-9, Z)[:, None]
 
 
+def seen_behind(
+    xs: list[ImuValues],
+    pts: np.ndarray,
+    cams: list[tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, np.ndarray]],
+    min_depth_m: float,
+) -> np.ndarray:
+    """Landmarks that some observation sees closer than ``min_depth_m`` (or behind the camera), (L,) bool.
+
+    Args:
+        xs: Keyframe values (N).
+        pts: Landmarks in W (m), shape (L, 3).
+        cams: Per camera ``(observations (kf index (M,), landmark index (M,), xy (M, 2)), R_BC, p_BC)``.
+        min_depth_m: Smallest depth along the optical axis (m).
+    """
+    bad = np.zeros(len(pts), dtype=bool)
+    R_WB = np.stack([x.R_WB for x in xs])
+    p_WB = np.stack([x.p_WB for x in xs])
+    for (kf_i, lm_i, _), R_BC, p_BC in cams:
+        q = np.einsum("mji,mj->mi", R_WB[kf_i], pts[lm_i] - p_WB[kf_i])
+        depth = ((q - p_BC) @ R_BC)[:, 2]
+        bad[lm_i[depth < min_depth_m]] = True
+    return bad
+
+
 def reprojection(
     R_WB: np.ndarray, p_WB: np.ndarray, p_W: np.ndarray, R_BC: np.ndarray, p_BC: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
