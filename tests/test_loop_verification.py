@@ -38,7 +38,7 @@ def _gt_pose(ds, t_s: float) -> RigidTransform:
 
 def _keyframe_with_depths(db, image, calib, depth_of_xy, R_WB, p_WB) -> Keyframe:
     """A keyframe whose landmarks are the features' rays cut at ``depth_of_xy(xy) -> z_C`` (m)."""
-    uv, desc, _ = db.extract(image, R_WB, p_WB)
+    uv, desc, *_ = db.extract(image, R_WB, p_WB)
     xy = calib.camera.undistort_points(uv)
     z = depth_of_xy(xy)
     p_C = np.hstack([xy, np.ones((len(xy), 1))]) * z[:, None]
@@ -59,7 +59,7 @@ def test_revisit_of_two_real_frames_recovers_the_ground_truth_relative_pose(euro
     kf = _keyframe_with_depths(
         db, load_image(euroc, i), calib, lambda xy: rng.uniform(2, 6, len(xy)), T_i.R, T_i.p
     )
-    uv, desc, _ = db.extract(load_image(euroc, j), T_j.R, T_j.p)
+    uv, desc, *_ = db.extract(load_image(euroc, j), T_j.R, T_j.p)
     verdict = verify_candidate(uv, desc, T_j.R, kf, calib, KP, VerificationParams())
     assert verdict.reason == "ok"
     truth = T_i.inverse() @ T_j
@@ -96,7 +96,7 @@ def _moved_pair(euroc, T_C0_Cq: RigidTransform, depth_of_xy, depth_m: float = 3.
     T_W_Bq = T_W_Bm @ T_mq
     kf = _keyframe_with_depths(db, undist[0], calib, depth_of_xy, T_W_Bm.R, T_W_Bm.p)
     query = _plane_view(undist[1], K, T_C0_Cq.inverse(), depth_m)
-    uv, desc, _ = db.extract(query, T_W_Bq.R, T_W_Bq.p)
+    uv, desc, *_ = db.extract(query, T_W_Bq.R, T_W_Bq.p)
     verdict = verify_candidate(uv, desc, T_W_Bq.R, kf, calib, KP, VerificationParams())
     return verdict, T_mq
 

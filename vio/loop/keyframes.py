@@ -2,7 +2,8 @@
 
 A frame becomes a keyframe when the estimated body moved ``min_translation_m``, turned ``min_rotation_deg`` or
 ``max_interval_s`` passed since the last keyframe of its odometry sequence. Each keyframe keeps ORB keypoints
-and binary descriptors, and a landmark per feature where one is known. Landmarks are triangulated (linear DLT,
+and binary descriptors, the pyramid level (octave) each was detected at, and a landmark per feature where
+one is known. Landmarks are triangulated (linear DLT,
 ``cv2.triangulatePoints``) from ORB matches with the previous keyframes of the same sequence (the last one,
 then older ones for features still without a landmark, a wider baseline), using the two
 *estimated* poses and the camera calibration, so PnP needs nothing from the estimator's internals. They are
@@ -40,6 +41,9 @@ class Keyframe:
             localized.
         p_WB_map: Position in the map frame (m), shape (3,), or None.
         tf: Bag-of-words term frequencies, shape (W,), or None before the vocabulary exists.
+        octaves: ORB pyramid level each feature was detected at, shape (N,) int; 0 for caller-given points;
+            None (all 0) for keyframes of a map saved without it. A level-``o`` keypoint is located on a grid
+            ``scale_factor ** o`` pixels wide, so its pixel noise grows by that factor.
     """
 
     index: int
@@ -53,6 +57,13 @@ class Keyframe:
     R_WB_map: np.ndarray | None = None
     p_WB_map: np.ndarray | None = None
     tf: np.ndarray | None = None
+    octaves: np.ndarray | None = None
+
+    def pixel_sigma_scale(self, scale_factor: float) -> np.ndarray:
+        """Pixel-noise scale of each feature, ``scale_factor ** octave``, shape (N,)."""
+        if self.octaves is None:
+            return np.ones(len(self.keypoints_uv_px))
+        return float(scale_factor) ** np.asarray(self.octaves, dtype=float)
 
     @property
     def has_landmark(self) -> np.ndarray:
@@ -112,7 +123,9 @@ class KeyframeDatabase:
         self.params = params or KeyframeParams()
         self.keyframes: list[Keyframe] = []
         self._orb = cv2.ORB_create(
-            nfeatures=self.params.orb_n_features, fastThreshold=self.params.orb_fast_threshold
+            nfeatures=self.params.orb_n_features,
+            scaleFactor=self.params.orb_scale_factor,
+            fastThreshold=self.params.orb_fast_threshold,
         )
         self._last_of_sequence: dict[int, int] = {}
 
@@ -156,7 +169,7 @@ class KeyframeDatabase:
         p_WB: np.ndarray,
         points_W: np.ndarray | None = None,
         points_uv_px: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """ORB features of an image, plus descriptors at caller-given landmark observations.
 
         Args:
@@ -167,10 +180,12 @@ class KeyframeDatabase:
             points_uv_px: Their pixels in this image, shape (M, 2), or None.
 
         Returns:
-            ``(keypoints_uv_px (N, 2) float32, descriptors (N, 32) uint8, landmarks_B (N, 3) with NaN rows)``.
+            ``(keypoints_uv_px (N, 2) float32, descriptors (N, 32) uint8, landmarks_B (N, 3) with NaN rows,
+            octaves (N,) int8: the pyramid level of each feature, 0 for the caller's points)``.
         """
         kps, desc = self._orb.detectAndCompute(image_u8, None)
         uv = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
+        octaves = np.array([k.octave for k in kps], dtype=np.int8)
         desc = np.zeros((0, 32), dtype=np.uint8) if desc is None else desc
         landmarks_B = np.full((len(uv), 3), np.nan)
         if points_W is not None and points_uv_px is not None and len(points_W):
@@ -184,7 +199,8 @@ class KeyframeDatabase:
                 desc = np.vstack([desc, desc_given])
                 lm = (np.asarray(points_W, dtype=float)[ids] - p_WB) @ R_WB
                 landmarks_B = np.vstack([landmarks_B, lm])
-        return uv, np.ascontiguousarray(desc, dtype=np.uint8), landmarks_B
+                octaves = np.concatenate([octaves, np.zeros(len(ids), dtype=np.int8)])
+        return uv, np.ascontiguousarray(desc, dtype=np.uint8), landmarks_B, octaves
 
     def add(self, keyframe: Keyframe) -> None:
         """Append a keyframe (its ``index`` must be the next position)."""
