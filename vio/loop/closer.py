@@ -153,6 +153,7 @@ class LoopCloser:
             desc,
             landmarks_B,
             octaves=octaves,
+            landmark_sigma_m_per_px=np.where(np.isfinite(landmarks_B[:, 0]), 0.0, np.inf),
         )
         recent = self.db.recent_of_sequence(self.sequence, self.params.keyframes.triangulation_keyframes)
         for older in recent:

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.lie import log_so3
+from viotb.vio.loop.frames import projection_jacobian
 from viotb.vio.loop.params import KeyframeParams
 
 
@@ -44,6 +45,9 @@ class Keyframe:
         octaves: ORB pyramid level each feature was detected at, shape (N,) int; 0 for caller-given points;
             None (all 0) for keyframes of a map saved without it. A level-``o`` keypoint is located on a grid
             ``scale_factor ** o`` pixels wide, so its pixel noise grows by that factor.
+        landmark_sigma_m_per_px: Standard deviation of each triangulated landmark (square root of its
+            covariance's trace) per pixel of level-0 keypoint noise (m/px), shape (N,); inf where none, 0
+            for a caller-given landmark (never replaced); None (a loaded map) for unknown.
     """
 
     index: int
@@ -58,6 +62,7 @@ class Keyframe:
     p_WB_map: np.ndarray | None = None
     tf: np.ndarray | None = None
     octaves: np.ndarray | None = None
+    landmark_sigma_m_per_px: np.ndarray | None = None
 
     def pixel_sigma_scale(self, scale_factor: float) -> np.ndarray:
         """Pixel-noise scale of each feature, ``scale_factor ** octave``, shape (N,)."""
@@ -212,12 +217,17 @@ class KeyframeDatabase:
     def triangulate(self, prev: Keyframe, new: Keyframe, calib: CameraCalibration) -> int:
         """Triangulate landmarks from matches between two keyframes and store them in both.
 
-        A feature that already has a landmark keeps it. Checks: positive depth in ``[min_depth_m,
-        max_depth_m]`` in both cameras, ray parallax >= ``min_parallax_deg``, reprojection error <=
-        ``max_reprojection_px`` in both.
+        Checks: positive depth in ``[min_depth_m, max_depth_m]`` in both cameras, ray parallax >=
+        ``min_parallax_deg``, reprojection error <= ``max_reprojection_px`` in both. Each landmark's
+        covariance is that of the two-view least-squares point, ``(sum_v J_v^T J_v / s_v^2)^-1`` per pixel
+        of level-0 noise, with ``J_v`` the Jacobian of view ``v``'s projection (px per m) and ``s_v`` its
+        keypoint's pyramid scale (``Keyframe.pixel_sigma_scale``): a pair of a wider baseline or finer
+        keypoints gives a smaller one. A feature that already has a landmark keeps it unless the new one's
+        standard deviation is smaller (a keyframe's landmarks improve as its later neighbours arrive);
+        caller-given landmarks and those of keyframes without ``landmark_sigma_m_per_px`` are kept.
 
         Returns:
-            Number of landmarks made.
+            Number of landmarks made or replaced in ``new`` (or ``prev``, whichever is more).
         """
         kp = self.params
         i_new, i_prev = match_descriptors(new.descriptors, prev.descriptors, kp.match_ratio, kp.max_hamming)
@@ -234,23 +244,35 @@ class KeyframeDatabase:
         ok = np.all(np.isfinite(p_W), axis=1)
         f_px = 0.5 * (cam.fx + cam.fy)
         rays = []
-        for (R_WC, p_WC), xy in zip(poses, (xy_prev, xy_new), strict=True):
+        info = np.zeros((len(p_W), 3, 3))  # (1/m^2) per 1/px^2 of level-0 noise
+        views = ((prev, i_prev, xy_prev), (new, i_new, xy_new))
+        for (R_WC, p_WC), (kf, idx, xy) in zip(poses, views, strict=True):
             p_C = (p_W - p_WC) @ R_WC
             z = p_C[:, 2]
             ok &= (z > kp.min_depth_m) & (z < kp.max_depth_m)
             with np.errstate(divide="ignore", invalid="ignore"):
                 err_px = f_px * np.linalg.norm(p_C[:, :2] / z[:, None] - xy, axis=1)
+                J = f_px * projection_jacobian(np.where(ok[:, None], p_C, 1.0)) @ R_WC.T
             ok &= err_px <= kp.max_reprojection_px
+            scale2 = kf.pixel_sigma_scale(kp.orb_scale_factor)[idx] ** 2
+            info += np.einsum("nki,nkj->nij", J, J) / scale2[:, None, None]
             rays.append(p_W - p_WC)
         with np.errstate(divide="ignore", invalid="ignore"):
             cos_par = np.sum(rays[0] * rays[1], axis=1) / (
                 np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1)
             )
         ok &= cos_par <= np.cos(np.deg2rad(kp.min_parallax_deg))
+        sigma = np.full(len(p_W), np.inf)
+        if ok.any():
+            sigma[ok] = np.sqrt(np.trace(np.linalg.inv(info[ok]), axis1=1, axis2=2))
         made = 0
         for kf, idx in ((new, i_new[ok]), (prev, i_prev[ok])):
             lm_B = (p_W[ok] - kf.p_WB_odom) @ kf.R_WB_odom
-            free = ~np.isfinite(kf.landmarks_B[idx, 0])
-            kf.landmarks_B[idx[free]] = lm_B[free]
-            made = max(made, int(free.sum()))
+            if kf.landmark_sigma_m_per_px is None:
+                better = ~np.isfinite(kf.landmarks_B[idx, 0])
+            else:
+                better = sigma[ok] < kf.landmark_sigma_m_per_px[idx]
+                kf.landmark_sigma_m_per_px[idx[better]] = sigma[ok][better]
+            kf.landmarks_B[idx[better]] = lm_B[better]
+            made = max(made, int(better.sum()))
         return made

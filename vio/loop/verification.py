@@ -29,7 +29,13 @@ import cv2
 import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.lie import exp_so3, skew_batch
-from viotb.vio.loop.frames import RigidTransform, horizontal_axis_B, loop_4dof, tilt_error_rad
+from viotb.vio.loop.frames import (
+    RigidTransform,
+    horizontal_axis_B,
+    loop_4dof,
+    projection_jacobian,
+    tilt_error_rad,
+)
 from viotb.vio.loop.keyframes import Keyframe, match_descriptors
 from viotb.vio.loop.params import KeyframeParams, VerificationParams
 
@@ -69,7 +75,7 @@ class Verdict:
     reason: str
 
 
-def projection_jacobian(p_C: np.ndarray) -> np.ndarray:
+def pose_jacobian(p_C: np.ndarray) -> np.ndarray:
     """Jacobian of normalized projections under ``p_C' = Exp(dtheta) p_C + dt``, shape (N, 2, 6).
 
     Args:
@@ -78,10 +84,7 @@ def projection_jacobian(p_C: np.ndarray) -> np.ndarray:
     Returns:
         ``d (x / z, y / z) / d (dtheta, dt)`` per point (columns: rotation then translation).
     """
-    x, y, z = p_C[:, 0], p_C[:, 1], p_C[:, 2]
-    d_proj = np.zeros((len(p_C), 2, 3))
-    d_proj[:, 0, 0] = d_proj[:, 1, 1] = 1.0 / z
-    d_proj[:, 0, 2], d_proj[:, 1, 2] = -x / z**2, -y / z**2
+    d_proj = projection_jacobian(p_C)
     return np.concatenate([-d_proj @ skew_batch(p_C), d_proj], axis=2)
 
 
@@ -106,7 +109,7 @@ def pnp_sigmas(
     Returns:
         ``(sigma about world z (rad), largest position sigma (m))``.
     """
-    J = projection_jacobian(p_C)
+    J = pose_jacobian(p_C)
     w = np.ones(len(p_C)) if weights is None else np.asarray(weights, dtype=float)
     cov = sigma_norm**2 * np.linalg.pinv(np.einsum("n,nki,nkj->ij", w, J, J))
     yaw_var = float(z_C @ cov[:3, :3] @ z_C)
@@ -124,7 +127,7 @@ def refine_pose_weighted(
     """Weighted Gauss-Newton refinement of a camera pose on 3-D / 2-D correspondences.
 
     Minimises ``sum_i w_i |pi(R_CB X_i + p_CB) - x_i|^2`` with ``pi`` the normalized projection, stepping
-    ``R <- Exp(dtheta) R``, ``p <- Exp(dtheta) p + dt`` (the perturbation of :func:`projection_jacobian`).
+    ``R <- Exp(dtheta) R``, ``p <- Exp(dtheta) p + dt`` (the perturbation of :func:`pose_jacobian`).
 
     Args:
         points_B: Landmarks in the source frame (m), shape (N, 3).
@@ -142,7 +145,7 @@ def refine_pose_weighted(
     for _ in range(iterations):
         p_C = points_B @ R.T + p
         r = (p_C[:, :2] / p_C[:, 2:3] - xy_norm).reshape(-1, 2)
-        J = projection_jacobian(p_C)
+        J = pose_jacobian(p_C)
         H = np.einsum("n,nki,nkj->ij", w, J, J)
         g = np.einsum("n,nki,nk->i", w, J, r)
         try:
