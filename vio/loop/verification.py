@@ -15,10 +15,10 @@ keypoint found at level ``o`` sits on a grid ``1.2 ** o`` pixels wide, so both t
 match keypoint its landmark was triangulated from carry that much more noise; the residual's variance is
 taken as ``s_q ** 2 + s_m ** 2`` (in level-0 units), and a weighted Gauss-Newton
 (:func:`refine_pose_weighted`) minimises the whitened residuals, as ORB-SLAM's pose optimisation does with
-its ``invSigma2`` per level (Mur-Artal et al. 2015, Sec. V). Unweighted, the coarse levels (40-60 % of the
-inliers on 320x240 renders, f = 120 px) pulled a closure 6.7 cm / 0.98 deg off the truth where yaw trades
-with a lateral translation; weighted, 4.6 cm / 0.67 deg (long-loop 40 s, seed 14; median error 0.75 ->
-0.50 cm).
+its ``invSigma2`` per level (Mur-Artal et al. 2015, the motion-only bundle adjustment of its tracking).
+Unweighted, the coarse levels (40-60 % of the inliers on 320x240 renders, f = 120 px) pulled a closure
+6.7 cm / 0.98 deg off the truth where yaw trades with a lateral translation; weighted, 4.6 cm / 0.67 deg
+(long-loop 40 s, seed 14; median error 0.75 -> 0.50 cm).
 """
 
 from __future__ import annotations
