@@ -142,9 +142,18 @@ class LoopCloser:
             return None
         if self.heading_axis_B is None:
             self.heading_axis_B = horizontal_axis_B(R_WB)
-        uv, desc, landmarks_B = self.db.extract(image_u8, R_WB, p_WB, points_W, points_uv_px)
+        uv, desc, landmarks_B, octaves = self.db.extract(image_u8, R_WB, p_WB, points_W, points_uv_px)
         kf = Keyframe(
-            len(self.db), float(t_s), self.sequence, R_WB.copy(), p_WB.copy(), uv, desc, landmarks_B
+            len(self.db),
+            float(t_s),
+            self.sequence,
+            R_WB.copy(),
+            p_WB.copy(),
+            uv,
+            desc,
+            landmarks_B,
+            octaves=octaves,
+            landmark_sigma_m_per_px=np.where(np.isfinite(landmarks_B[:, 0]), 0.0, np.inf),
         )
         recent = self.db.recent_of_sequence(self.sequence, self.params.keyframes.triangulation_keyframes)
         for older in recent:
@@ -187,6 +196,7 @@ class LoopCloser:
                 calib,
                 self.params.keyframes,
                 self.params.verification,
+                kf.octaves,
             )
             if verdict.pose is None:
                 continue
