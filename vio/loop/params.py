@@ -207,6 +207,15 @@ class LoopClosureParams:
         pose_graph: Pose graph.
         blend_duration_s: Time over which a new drift correction is blended in (s).
         tracking_loss_gap_s: A gap between frames longer than this starts a new odometry sequence (s).
+        relocalization_keyframe_interval_s: After a tracking loss, a frame becomes a keyframe this often (s)
+            whatever the motion, until the new sequence has relocalized and for ``relocalization_dense_s``
+            after: a hovering drone moves too little for the motion rule (0.3 m / 15 deg), its next keyframe
+            would wait ``max_interval_s`` (2 s), and the confirmation a second one. Short, because the
+            confirmation (``confirm_translation_m``, 3 cm) must hold over the drift of a coasted pose
+            between the two keyframes: measured up to 19 cm/s after 4 s dark (KLT, ``fly-lights-out``).
+        relocalization_dense_s: How long the dense keyframes go on after the relocalization (s): a filter
+            re-initialized after the loss still drifts while it converges, and each further closure
+            corrects it.
     """
 
     keyframes: KeyframeParams = field(default_factory=KeyframeParams)
@@ -216,3 +225,5 @@ class LoopClosureParams:
     pose_graph: PoseGraphParams = field(default_factory=PoseGraphParams)
     blend_duration_s: float = 1.0
     tracking_loss_gap_s: float = 1.0
+    relocalization_keyframe_interval_s: float = 0.1
+    relocalization_dense_s: float = 3.0
