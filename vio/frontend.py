@@ -104,6 +104,9 @@ class KltParams:
         win_size_px: Lucas-Kanade window side (px).
         pyramid_levels: Extra pyramid levels.
         fb_max_error_px: Largest forward-backward error (px).
+        fb_win_size_px: Lucas-Kanade window side (px) of the backward (check) pass.
+        fb_epsilon_px: Convergence threshold (px) of the backward pass's iterations (the forward pass uses
+            OpenCV's default of 0.01 px with at most 30 iterations).
         ransac_threshold_px: RANSAC epipolar threshold (px, on undistorted points scaled by the focal length).
         ransac_confidence: RANSAC confidence.
         border_px: Features closer than this to the border (px) are dropped.
@@ -124,6 +127,8 @@ class KltParams:
     win_size_px: int = 15
     pyramid_levels: int = 3
     fb_max_error_px: float = 1.0
+    fb_win_size_px: int = 15
+    fb_epsilon_px: float = 0.01
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.99
     border_px: float = 3.0
@@ -214,7 +219,13 @@ class KltTracker:
         good = (st1.ravel() == 1) & self.camera.in_image(p1.astype(float), p.border_px)
         fwd = np.flatnonzero(good)
         if len(fwd):
-            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1[fwd].reshape(-1, 1, 2), None, **lk)
+            back = {
+                "winSize": (p.fb_win_size_px, p.fb_win_size_px),
+                "maxLevel": p.pyramid_levels,
+                "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, p.fb_epsilon_px),
+            }
+            p1_fwd = p1[fwd].reshape(-1, 1, 2)
+            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1_fwd, None, **back)
             fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts[fwd], axis=1)
             good[fwd] = (st2.ravel() == 1) & (fb < p.fb_max_error_px)
         pts, ids, xy_prev = p1[good], self._prev_ids[good], self._prev_xy[good]
