@@ -110,6 +110,9 @@ def test_measurement_compress_of_constrained_rows_matches_qr_of_the_formed_produ
     scale = np.abs(T).max() ** 2
     np.testing.assert_allclose(Hc.T @ Hc, T[:30, :30].T @ T[:30, :30], atol=1e-10 * scale)
     np.testing.assert_allclose(Hc.T @ rc, T[:30, :30].T @ T[:30, 30], atol=1e-10 * np.abs(T).max())
+    # Rows without information compress to an empty system (the update then skips).
+    H0c, r0c = measurement_compress(np.zeros((50, 30)), np.zeros(50))
+    assert H0c.shape == (0, 30) and r0c.shape == (0,)
     # Pi is the symmetric, idempotent projector of observability_constrain.
     np.testing.assert_allclose(Pi, Pi.T, atol=0.0)
     np.testing.assert_allclose(Pi @ Pi, Pi, atol=1e-12)

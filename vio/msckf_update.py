@@ -259,6 +259,8 @@ def msckf_update(
     else:
         H_all, r_all = H_o[passed].reshape(-1, n_c), r_o[passed].reshape(-1)
     H_c, r_c = measurement_compress(H_all, r_all, Pi)
+    if len(H_c) == 0:  # no direction carries information (all-zero rows): nothing to update
+        return stats
     H_full = np.zeros((len(H_c), st.dim))
     H_full[:, cols] = H_c
     ekf_update(st, H_full, r_c, sigma2)
