@@ -43,7 +43,8 @@ import copy
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.lie import exp_so3
+from viotb.vio.init_dynamic_cov import preintegration_error_cov
+from viotb.vio.lie import exp_so3, skew
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample
 
@@ -84,7 +85,10 @@ def preintegrate_to(
             gyro = (1.0 - u) * s.gyro_B_rad_s + u * nxt.gyro_B_rad_s
         else:
             acc, gyro = s.accel_B_m_s2, s.gyro_B_rad_s
-        pim.integrate(acc, gyro, b - a)
+        # ImuPreintegration applies the specific force with the rotation at the step's start; the reading
+        # is the midpoint's, so it is turned by half the step's rotation (second order in dt: without it
+        # the velocity drifts by ~|w| |f| dt / 2 per second, 2.5 mm/s^2 at 0.1 rad/s and 200 Hz).
+        pim.integrate(exp_so3(0.5 * (b - a) * gyro) @ acc, gyro, b - a)
 
     for k, s in enumerate(samples):
         t_next = samples[k + 1].t_s if k + 1 < len(samples) else t_end
@@ -143,16 +147,6 @@ def _trajectory_scale(p_k: np.ndarray, dp_dx: np.ndarray) -> tuple[float, np.nda
     return float(np.sum(dist)), np.einsum("ki,kin->n", e, dp_dx)
 
 
-def _sigma_along(info: np.ndarray, w: np.ndarray) -> float:
-    """``sqrt(w^T info^-1 w)``; inf when ``info`` is singular or the result is not finite."""
-    try:
-        u = np.linalg.solve(info, w)
-    except np.linalg.LinAlgError:
-        return float("inf")
-    var = float(w @ u)
-    return float(np.sqrt(var)) if np.isfinite(var) and var >= 0.0 else float("inf")
-
-
 def _tilt_sigma_rad(cov_dir: np.ndarray) -> float:
     """Largest 1-sigma (rad) of a 2x2 gravity-direction (tangent) covariance; inf if not finite."""
     if not np.all(np.isfinite(cov_dir)):
@@ -182,20 +176,45 @@ class _Window:
     def n_obs(self) -> int:
         return int(self.obs_xy.shape[0])
 
-    def linear_system(self) -> tuple[np.ndarray, np.ndarray]:
-        """``A x = b`` in ``x = [v0 (3), g0 (3), p_f (3 n_f)]``, two rows per observation."""
-        A = np.zeros((2 * self.n_obs, 6 + 3 * self.n_f))
-        b = np.zeros(2 * self.n_obs)
-        for o in range(self.n_obs):
-            k, j, (x, y) = self.obs_frame[o], self.obs_feat[o], self.obs_xy[o]
-            M = np.array([[1.0, 0.0, -x], [0.0, 1.0, -y]]) @ (self.dR[k] @ self.R_BC).T
-            t = self.dts[k]
-            rows = slice(2 * o, 2 * o + 2)
-            A[rows, 0:3] = -M * t
-            A[rows, 3:6] = -0.5 * M * t * t
-            A[rows, 6 + 3 * j : 9 + 3 * j] = M
-            b[rows] = M @ (self.dp[k] + self.dR[k] @ self.p_BC)
-        return A, b
+    def linear_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The linear system's two rows per observation, by blocks (step 3).
+
+        Returns:
+            ``(A_g (n_obs, 2, 6), A_f (n_obs, 2, 3), b (n_obs, 2))``: the columns of ``[v0, g0]`` and of the
+            observation's feature ``p_f``, and the right-hand side.
+        """
+        k = self.obs_frame
+        xy = self.obs_xy
+        proj = np.zeros((self.n_obs, 2, 3))
+        proj[:, 0, 0] = proj[:, 1, 1] = 1.0
+        proj[:, :, 2] = -xy
+        M = proj @ np.transpose(self.dR[k] @ self.R_BC, (0, 2, 1))  # (n, 2, 3)
+        t = self.dts[k][:, None, None]
+        A_g = np.concatenate([-M * t, -0.5 * M * t * t], axis=2)
+        c = self.dp[k] + self.dR[k] @ self.p_BC
+        return A_g, M, np.einsum("nij,nj->ni", M, c)
+
+    def solve_linear(
+        self, A_g: np.ndarray, A_f: np.ndarray, b: np.ndarray, weights: np.ndarray
+    ) -> np.ndarray | None:
+        """Weighted least squares of the block rows, features eliminated by the Schur complement.
+
+        Args:
+            A_g: Global columns, shape (n_obs, 2, G).
+            A_f: Feature columns, shape (n_obs, 2, 3).
+            b: Right-hand side, shape (n_obs, 2).
+            weights: Row weight of each observation, shape (n_obs,).
+
+        Returns:
+            ``x = [globals (G), p_f (3 n_f)]``, or None when the reduced system is singular.
+        """
+        try:
+            _, d_glob, d_feat = _schur(*_normal_equations(self, b, A_g, A_f, weights**2), 0.0)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(d_glob)):
+            return None
+        return -np.concatenate([d_glob, d_feat.ravel()])
 
     def obs_depths(self, x: np.ndarray) -> np.ndarray:
         """Depth (m) of every observation for the linear ``x``, shape (n_obs,)."""
@@ -242,16 +261,14 @@ def dynamic_alignment(
     win = _Window(times, tracks, pims, calib)
     sigma_floor = p.pixel_sigma_px / float(calib.camera.fx)
 
-    # 3. Weighted linear solve (rows in units of the pixel-noise floor, then also divided by the depth).
-    A, b = win.linear_system()
+    # 3. Weighted linear solve (rows divided by the feature depth of the previous solution).
+    A_g, A_f, b = win.linear_rows()
     weights = np.ones(win.n_obs)
     for _ in range(2):
-        Aw = A * np.repeat(weights, 2)[:, None] / sigma_floor
-        bw = b * np.repeat(weights, 2) / sigma_floor
-        x_lin, *_ = np.linalg.lstsq(Aw, bw, rcond=None)
-        depths = win.obs_depths(x_lin)
+        x_lin = win.solve_linear(A_g, A_f, b, weights)
+        depths = win.obs_depths(x_lin) if x_lin is not None else np.full(win.n_obs, np.nan)
         if not np.all(np.isfinite(depths)):
-            return None, "linear alignment failed (non-finite solution)"
+            return None, "linear alignment failed (singular or non-finite solution)"
         weights = 1.0 / np.maximum(np.abs(depths), p.min_depth_m)
     g_lin = x_lin[3:6]
     g_norm = float(np.linalg.norm(g_lin))
@@ -260,8 +277,9 @@ def dynamic_alignment(
         return None, f"linear alignment gave |g| = {g_norm:.3f} m/s^2 (weak excitation?)"
     # 5. Enforce |g| = 9.81 and re-solve v0, p_f with gravity fixed.
     g_dir0 = g_lin / g_norm
-    keep = np.r_[0:3, 6 : 6 + 3 * win.n_f]
-    x_fix, *_ = np.linalg.lstsq(Aw[:, keep], bw - Aw[:, 3:6] @ (GRAVITY_M_S2 * g_dir0), rcond=None)
+    x_fix = win.solve_linear(A_g[:, :, 0:3], A_f, b - A_g[:, :, 3:6] @ (GRAVITY_M_S2 * g_dir0), weights)
+    if x_fix is None:
+        return None, "linear alignment failed (singular with gravity fixed)"
     # 6. Levenberg-Marquardt on the reprojection errors, features eliminated by the Schur complement.
     tangent = np.linalg.svd(np.eye(3) - np.outer(g_dir0, g_dir0))[0][:, :2]  # (3, 2), orthogonal to g
     R_g = np.column_stack([tangent, g_dir0])  # maps e_z onto g_dir0
@@ -272,25 +290,14 @@ def dynamic_alignment(
     z_glob, pf, S, rms = _refine(win, R_g, z_glob, pf, sigma_floor, prior, p.max_refine_iterations)
     if not np.isfinite(rms) or rms > p.max_reprojection_rms:
         return None, f"refinement reprojection RMS {rms:.4f} > {p.max_reprojection_rms}"
-    # 7. Observability: the marginal covariance of the globals is S^-1 (noise: the RMS, at least the floor).
-    v0, g, bg, ba, G = _globals(z_glob, R_g)
-    _, p_k = _poses(win, v0, g, bg, ba)
-    J_k = np.zeros((len(times), 3, N_GLOBAL))
-    J_k[:, :, 0:3] = win.dts[:, None, None] * np.eye(3)
-    J_k[:, :, 3:5] = 0.5 * win.dts[:, None, None] ** 2 * G
-    J_k[:, :, 5:8] = win.Jp_bg
-    J_k[:, :, 8:11] = win.Jp_ba
-    L, w = _trajectory_scale(p_k, J_k)
-    info = S / max(rms / sigma_floor, 1.0) ** 2 + np.diag(prior)
-    scale_sigma = _sigma_along(info, w) / L if L > 0.0 else float("inf")
-    try:
-        tilt_sigma = _tilt_sigma_rad(np.linalg.inv(info)[3:5, 3:5])
-    except np.linalg.LinAlgError:
-        tilt_sigma = float("inf")
-    if not scale_sigma <= p.max_scale_sigma or not tilt_sigma <= p.max_tilt_sigma_rad:
+    # 7. Observability: the covariance of the scale, the velocity and the gravity direction at the end.
+    v0, g, bg, ba, _ = _globals(z_glob, R_g)
+    obs = _observability(win, [*pims, pim_end], z_glob, pf, R_g, sigma_floor, rms, prior, noise)
+    if not obs["scale_sigma"] <= p.max_scale_sigma or not obs["tilt_sigma_rad"] <= p.max_tilt_sigma_rad:
         return None, (
-            f"scale/gravity not observable yet: scale sigma {100 * scale_sigma:.2f} %, tilt sigma "
-            f"{np.rad2deg(tilt_sigma):.2f} deg (window {win.dts[-1]:.2f} s)"
+            f"scale/gravity not observable yet: scale sigma {100 * obs['scale_sigma']:.2f} % (trajectory "
+            f"{100 * obs['length_sigma']:.2f} %, speed {100 * obs['speed_sigma']:.2f} %), tilt sigma "
+            f"{np.rad2deg(obs['tilt_sigma_rad']):.2f} deg (window {win.dts[-1]:.2f} s)"
         )
     dR_end, dv_end, dp_end = pim_end.corrected(bg, ba)
     return {
@@ -304,9 +311,105 @@ def dynamic_alignment(
         "dp_end": dp_end,
         "T": pim_end.dt_s,
         "g_norm": g_norm,
-        "scale_sigma": scale_sigma,
-        "tilt_sigma_rad": tilt_sigma,
+        "rms": rms,
+        **obs,
     }, ""
+
+
+def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float, prior, noise: ImuNoise):
+    """Step 7: first-order covariance of the window's scale, end velocity, end "up" axis and biases.
+
+    Two independent error sources (:mod:`viotb.vio.init_dynamic_cov`): the image noise (the residual RMS,
+    at least ``sigma``), whose share is the inverse of the reduced information ``S + prior``; and the
+    preintegration errors ``eta`` (white noise and bias random walk), which move the estimate by
+    ``-info^-1 G eta`` (``G``: the reduced cross-information of the frame-pose errors) and enter the
+    end state directly.
+
+    Args:
+        win: The window.
+        pims: Preintegrations from the first frame to every frame and to the end, K + 1 of them.
+        z_glob: Refined ``[v0, dg, bg, ba]``.
+        pf: Refined feature positions (m), shape (n_f, 3).
+        R_g: Gravity-direction chart.
+        sigma: Image-noise floor (normalized coordinates).
+        rms: Refined reprojection RMS (normalized coordinates).
+        prior: Information of the zero-mean prior on ``z_glob`` (units of ``sigma``), shape (11,).
+        noise: IMU noise densities.
+
+    Returns:
+        ``{scale_sigma, length_sigma, length_m, speed_sigma, tilt_sigma_rad, cov_v_B0 (3, 3),
+        cov_bg (3, 3), cov_ba (3, 3)}``: ``scale_sigma`` the larger of the relative sigmas of the
+        trajectory length (:func:`_trajectory_scale`) and of the end speed.
+    """
+    inf = {"scale_sigma": np.inf, "length_sigma": np.inf, "speed_sigma": np.inf, "tilt_sigma_rad": np.inf}
+    v0, g, bg, ba, G = _globals(z_glob, R_g)
+    n_k = len(win.dts)
+    pim_end = pims[-1]
+    # 7a. Reprojection Jacobians at the solution and the reduced information (noise: RMS, >= floor).
+    r, Jg, Jf, Jpose = reprojection(win, z_glob, pf, R_g, sigma, with_pose=True)
+    c2 = max(rms / sigma, 1.0) ** 2
+    H_gg, H_gf, H_ff, _, _ = _normal_equations(win, r, Jg, Jf)
+    try:
+        W = H_gf @ np.linalg.inv(H_ff + 1e-12 * np.eye(3))  # (n_f, G, 3)
+        info = (H_gg - np.einsum("nij,nkj->ik", W, H_gf)) / c2 + np.diag(prior)
+        cov_g = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return inf
+    # 7b. Sensitivity to the frame-pose errors [dtheta_k, dp_k]: G_eta = sum_obs (J_g - J_f W^T)^T J_pose.
+    L_red = Jg - Jf @ np.transpose(W[win.obs_feat], (0, 2, 1))  # (n_obs, 2, G)
+    G_obs = np.einsum("nki,nkj->nij", L_red, Jpose) / c2  # (n_obs, G, 6)
+    G_eta = np.zeros((N_GLOBAL, n_k + 1, 9))
+    np.add.at(G_eta[:, :, 0:3], (slice(None), win.obs_frame), np.transpose(G_obs[:, :, 0:3], (1, 0, 2)))
+    np.add.at(G_eta[:, :, 6:9], (slice(None), win.obs_frame), np.transpose(G_obs[:, :, 3:6], (1, 0, 2)))
+    # 7c. The quantities: trajectory length, end speed, end up axis (3), end velocity (3), bg, ba.
+    R_k, p_k = _poses(win, v0, g, bg, ba)
+    J_k = np.zeros((n_k, 3, N_GLOBAL))
+    J_k[:, :, 0:3] = win.dts[:, None, None] * np.eye(3)
+    J_k[:, :, 3:5] = 0.5 * win.dts[:, None, None] ** 2 * G
+    J_k[:, :, 5:8] = win.Jp_bg
+    J_k[:, :, 8:11] = win.Jp_ba
+    length, w_L = _trajectory_scale(p_k, J_k)
+    dR_end, dv_end, _ = pim_end.corrected(bg, ba)
+    v_end = v0 + g * pim_end.dt_s + dv_end
+    speed = float(np.linalg.norm(v_end))
+    up_end = -dR_end.T @ g / GRAVITY_M_S2
+    Jq_g = np.zeros((14, N_GLOBAL))
+    Jq_eta = np.zeros((14, n_k + 1, 9))
+    Jq_g[0] = w_L
+    dist = np.linalg.norm(p_k, axis=1)
+    Jq_eta[0, :n_k, 6:9] = np.where(dist[:, None] > 1e-9, p_k / np.maximum(dist, 1e-9)[:, None], 0.0)
+    J_v = np.zeros((3, N_GLOBAL))
+    J_v[:, 0:3] = np.eye(3)
+    J_v[:, 3:5] = pim_end.dt_s * G
+    J_v[:, 5:8] = pim_end.d_v_d_bg
+    J_v[:, 8:11] = pim_end.d_v_d_ba
+    e_v = v_end / max(speed, 1e-9)
+    Jq_g[1], Jq_eta[1, n_k, 3:6] = e_v @ J_v, e_v
+    Jq_g[2:5, 3:5] = -dR_end.T @ G / GRAVITY_M_S2
+    Jq_g[2:5, 5:8] = skew(up_end) @ pim_end.d_R_d_bg
+    Jq_eta[2:5, n_k, 0:3] = skew(up_end)
+    Jq_g[5:8], Jq_eta[5:8, n_k, 3:6] = J_v, np.eye(3)
+    Jq_g[8:14, 5:11] = np.eye(6)
+    # 7d. Covariance of the quantities: image share plus the preintegration share.
+    Jq_eta = Jq_eta.reshape(14, -1)
+    T = Jq_eta - Jq_g @ cov_g @ G_eta.reshape(N_GLOBAL, -1)
+    cov_q = Jq_g @ cov_g @ Jq_g.T + T @ preintegration_error_cov(pims, noise) @ T.T
+    if not np.all(np.isfinite(cov_q)):
+        return inf
+    var = np.maximum(np.diag(cov_q), 0.0)
+    length_sigma = float(np.sqrt(var[0])) / length if length > 0.0 else float("inf")
+    speed_sigma = float(np.sqrt(var[1])) / speed if speed > 0.0 else float("inf")
+    tangent = np.linalg.svd(np.eye(3) - np.outer(up_end, up_end))[0][:, :2]
+    return {
+        "scale_sigma": max(length_sigma, speed_sigma),
+        "length_sigma": length_sigma,
+        "length_m": length,
+        "speed_sigma": speed_sigma,
+        "tilt_sigma_rad": _tilt_sigma_rad(tangent.T @ cov_q[2:5, 2:5] @ tangent),
+        "cov_v_B0": cov_q[5:8, 5:8],
+        "cov_bg": cov_q[8:11, 8:11],
+        "cov_ba": cov_q[11:14, 11:14],
+    }
 
 
 N_GLOBAL = 11
@@ -329,7 +432,9 @@ def _poses(win: _Window, v0: np.ndarray, g: np.ndarray, bg: np.ndarray, ba: np.n
     return R_k, v0 * t + 0.5 * g * t * t + win.dp + win.Jp_bg @ bg + win.Jp_ba @ ba
 
 
-def reprojection(win: _Window, z_glob: np.ndarray, pf: np.ndarray, R_g: np.ndarray, sigma: float):
+def reprojection(
+    win: _Window, z_glob: np.ndarray, pf: np.ndarray, R_g: np.ndarray, sigma: float, with_pose: bool = False
+):
     """Residuals and Jacobians of every observation, in units of ``sigma``.
 
     Args:
@@ -338,10 +443,12 @@ def reprojection(win: _Window, z_glob: np.ndarray, pf: np.ndarray, R_g: np.ndarr
         pf: Feature positions in B0 (m), shape (n_f, 3).
         R_g: Gravity-direction chart (see :func:`_globals`).
         sigma: Normalized image noise.
+        with_pose: Also return ``J_pose (n_obs, 2, 6)``, the Jacobian for an error ``[dtheta, dp]`` of the
+            observation's frame pose (``R_k Exp(dtheta)``, ``p_k + dp``).
 
     Returns:
-        ``(r (n_obs, 2), J_glob (n_obs, 2, 11), J_feat (n_obs, 2, 3))``; the gyro-bias Jacobian uses
-        ``Exp(J (bg + d)) ~ Exp(J bg) Exp(J d)`` (Forster eq. 44 to first order).
+        ``(r (n_obs, 2), J_glob (n_obs, 2, 11), J_feat (n_obs, 2, 3))`` (and ``J_pose``); the gyro-bias
+        Jacobian uses ``Exp(J (bg + d)) ~ Exp(J bg) Exp(J d)`` (Forster eq. 44 to first order).
     """
     v0, g, bg, ba, G = _globals(z_glob, R_g)
     R_k, p_k = _poses(win, v0, g, bg, ba)
@@ -368,20 +475,36 @@ def reprojection(win: _Window, z_glob: np.ndarray, pf: np.ndarray, R_g: np.ndarr
     d_u_d_bg = skew_u @ win.JR_bg[of] - np.transpose(Rk, (0, 2, 1)) @ win.Jp_bg[of]
     J_glob[:, :, 5:8] = P @ win.R_BC.T @ d_u_d_bg
     J_glob[:, :, 8:11] = -A @ win.Jp_ba[of]
+    if with_pose:
+        return r, J_glob, A, np.concatenate([P @ win.R_BC.T @ skew_u, -A], axis=2)
     return r, J_glob, A
 
 
-def _normal_equations(win: _Window, r, J_glob, J_feat):
-    """``J^T J`` and ``J^T r`` by blocks: ``(H_gg (G, G), H_gf (n_f, G, 3), H_ff (n_f, 3, 3), b_g, b_f)``."""
+def _normal_equations(win: _Window, r, J_glob, J_feat, w2: np.ndarray | None = None):
+    """``J^T W J`` and ``J^T W r`` by blocks for rows ``[J_glob, J_feat]``, ``W`` per observation.
+
+    Args:
+        win: The window (which feature each observation belongs to).
+        r: Residuals, shape (n_obs, 2).
+        J_glob: Global columns, shape (n_obs, 2, G).
+        J_feat: Feature columns, shape (n_obs, 2, 3).
+        w2: Weight of each observation's rows, shape (n_obs,) (default: 1).
+
+    Returns:
+        ``(H_gg (G, G), H_gf (n_f, G, 3), H_ff (n_f, 3, 3), b_g (G,), b_f (n_f, 3))``.
+    """
     n_f, oj = win.n_f, win.obs_feat
-    H_gg = np.einsum("nki,nkj->ij", J_glob, J_glob)
-    b_g = np.einsum("nki,nk->i", J_glob, r)
-    H_gf = np.zeros((n_f, N_GLOBAL, 3))
+    JW_glob, JW_feat = J_glob, J_feat
+    if w2 is not None:
+        JW_glob, JW_feat = J_glob * w2[:, None, None], J_feat * w2[:, None, None]
+    H_gg = np.einsum("nki,nkj->ij", JW_glob, J_glob)
+    b_g = np.einsum("nki,nk->i", JW_glob, r)
+    H_gf = np.zeros((n_f, J_glob.shape[2], 3))
     H_ff = np.zeros((n_f, 3, 3))
     b_f = np.zeros((n_f, 3))
-    np.add.at(H_gf, oj, np.einsum("nki,nkj->nij", J_glob, J_feat))
-    np.add.at(H_ff, oj, np.einsum("nki,nkj->nij", J_feat, J_feat))
-    np.add.at(b_f, oj, np.einsum("nki,nk->ni", J_feat, r))
+    np.add.at(H_gf, oj, np.einsum("nki,nkj->nij", JW_glob, J_feat))
+    np.add.at(H_ff, oj, np.einsum("nki,nkj->nij", JW_feat, J_feat))
+    np.add.at(b_f, oj, np.einsum("nki,nk->ni", JW_feat, r))
     return H_gg, H_gf, H_ff, b_g, b_f
 
 
