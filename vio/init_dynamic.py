@@ -39,76 +39,24 @@ Steps of :func:`dynamic_alignment`:
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.init_dynamic_cov import preintegration_error_cov
-from viotb.vio.lie import exp_so3, skew
-from viotb.vio.preintegration import ImuPreintegration
+from viotb.vio.init_preintegration import RunningPreintegration
+from viotb.vio.init_refine import (
+    N_GLOBAL,
+    frame_poses,
+    globals_of,
+    normal_equations,
+    refine,
+    reprojection,
+    schur_step,
+)
+from viotb.vio.lie import skew
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample
 
 Frame = tuple[float, np.ndarray, np.ndarray]
 """One frame of features: ``(t_s, ids (M,), xy_norm (M, 2))``."""
-
-
-def preintegrate_to(
-    samples: list[ImuSample], times: list[float], t_end: float, noise: ImuNoise
-) -> tuple[list[ImuPreintegration], ImuPreintegration]:
-    """Preintegrate (zero bias) from ``times[0]`` to each time and to ``t_end``.
-
-    The readings are instantaneous samples, interpolated linearly between consecutive ones (the
-    propagator's convention, :mod:`viotb.vio.propagator`): each piece between sample and target times is
-    integrated with the interpolated reading at its midpoint (held after the last sample).
-
-    Args:
-        samples: IMU samples in time order, covering ``[times[0], t_end]``.
-        times: Increasing times (s).
-        t_end: Final time (s), ``>= times[-1]``.
-        noise: IMU noise densities.
-
-    Raises:
-        ValueError: The samples do not cover a requested time.
-    """
-    targets = sorted(set([*times, t_end]))
-    pim = ImuPreintegration(np.zeros(3), np.zeros(3), noise)
-    snapshots: dict[float, ImuPreintegration] = {targets[0]: copy.deepcopy(pim)}
-    t = targets[0]
-    ti = 1
-
-    def integrate(k: int, a: float, b: float) -> None:
-        s = samples[k]
-        if k + 1 < len(samples):
-            nxt = samples[k + 1]
-            u = (0.5 * (a + b) - s.t_s) / (nxt.t_s - s.t_s)
-            acc = (1.0 - u) * s.accel_B_m_s2 + u * nxt.accel_B_m_s2
-            gyro = (1.0 - u) * s.gyro_B_rad_s + u * nxt.gyro_B_rad_s
-        else:
-            acc, gyro = s.accel_B_m_s2, s.gyro_B_rad_s
-        # ImuPreintegration applies the specific force with the rotation at the step's start; the reading
-        # is the midpoint's, so it is turned by half the step's rotation (second order in dt: without it
-        # the velocity drifts by ~|w| |f| dt / 2 per second, 2.5 mm/s^2 at 0.1 rad/s and 200 Hz).
-        pim.integrate(exp_so3(0.5 * (b - a) * gyro) @ acc, gyro, b - a)
-
-    for k, s in enumerate(samples):
-        t_next = samples[k + 1].t_s if k + 1 < len(samples) else t_end
-        if t_next <= t:
-            continue
-        start = max(s.t_s, t)
-        while ti < len(targets) and targets[ti] <= t_next:
-            if targets[ti] > start:
-                integrate(k, start, targets[ti])
-                start = targets[ti]
-            snapshots[targets[ti]] = copy.deepcopy(pim)
-            ti += 1
-        if t_next > start and ti < len(targets):
-            integrate(k, start, t_next)
-        t = t_next
-        if ti >= len(targets):
-            break
-    if ti < len(targets):
-        raise ValueError(f"IMU data does not cover t={targets[ti]:.3f} s")
-    return [snapshots[tk] for tk in times], snapshots[t_end]
 
 
 def select_tracks(frames: list[Frame], max_frames: int, min_obs: int, max_features: int):
@@ -163,6 +111,8 @@ class _Window:
         self.obs_frame = np.array([k for fid in self.fids for k, _ in tracks[fid]])
         self.obs_feat = np.array([j for j, fid in enumerate(self.fids) for _ in tracks[fid]])
         self.obs_xy = np.array([xy for fid in self.fids for _, xy in tracks[fid]])
+        # Observations are grouped by feature, in feature order: the first observation of each.
+        self.feat_starts = np.flatnonzero(np.r_[True, np.diff(self.obs_feat) != 0])
         self.dts = np.array([t - times[0] for t in times])
         self.dR = np.stack([pm.delta_R for pm in pims])
         self.dp = np.stack([pm.delta_p for pm in pims])
@@ -209,7 +159,7 @@ class _Window:
             ``x = [globals (G), p_f (3 n_f)]``, or None when the reduced system is singular.
         """
         try:
-            _, d_glob, d_feat = _schur(*_normal_equations(self, b, A_g, A_f, weights**2), 0.0)
+            _, d_glob, d_feat = schur_step(*normal_equations(self, b, A_g, A_f, weights**2), 0.0)
         except np.linalg.LinAlgError:
             return None
         if not np.all(np.isfinite(d_glob)):
@@ -232,6 +182,7 @@ def dynamic_alignment(
     calib: CameraCalibration,
     noise: ImuNoise,
     params,
+    preintegration: RunningPreintegration | None = None,
 ):
     """Initialize from a moving window, or refuse.
 
@@ -241,6 +192,7 @@ def dynamic_alignment(
         calib: ``R_BC``, ``p_BC`` and the focal length (for the pixel-noise floor).
         noise: IMU noise densities (preintegration).
         params: :class:`~viotb.vio.initialization.InitParams`.
+        preintegration: Reused between tries (snapshots at every frame of the window); None: a fresh one.
 
     Returns:
         ``(solution, failure)``: ``solution`` is a dict ``{t_s, R_B0 (gravity-aligned), v0, g, bg, ba,
@@ -257,7 +209,11 @@ def dynamic_alignment(
         )
     # 2. Preintegration.
     t_end = samples[-1].t_s
-    pims, pim_end = preintegrate_to(samples, times, t_end, noise)
+    run = preintegration if preintegration is not None else RunningPreintegration(noise)
+    every = [f[0] for f in frames if times[0] <= f[0] <= t_end]
+    snaps, pim_end = run.snapshots(samples, every, t_end)
+    by_time = dict(zip(every, snaps, strict=True))
+    pims = [by_time[tk] for tk in times]
     win = _Window(times, tracks, pims, calib)
     sigma_floor = p.pixel_sigma_px / float(calib.camera.fx)
 
@@ -287,12 +243,15 @@ def dynamic_alignment(
     pf = x_fix[3:].reshape(win.n_f, 3).copy()
     prior = np.zeros(N_GLOBAL)
     prior[8:11] = (sigma_floor / p.sigma_accel_bias_m_s2) ** 2  # in units of the reprojection sigma
-    z_glob, pf, S, rms = _refine(win, R_g, z_glob, pf, sigma_floor, prior, p.max_refine_iterations)
+    z_glob, pf, S, rms = refine(win, R_g, z_glob, pf, sigma_floor, prior, p.max_refine_iterations)
     if not np.isfinite(rms) or rms > p.max_reprojection_rms:
         return None, f"refinement reprojection RMS {rms:.4f} > {p.max_reprojection_rms}"
     # 7. Observability: the covariance of the scale, the velocity and the gravity direction at the end.
-    v0, g, bg, ba, _ = _globals(z_glob, R_g)
-    obs = _observability(win, [*pims, pim_end], z_glob, pf, R_g, sigma_floor, rms, prior, noise)
+    v0, g, bg, ba, _ = globals_of(z_glob, R_g)
+    imu_cov = preintegration_error_cov(
+        [*pims, pim_end], noise, p.imu_scale_sigma, p.imu_misalignment_sigma_rad
+    )
+    obs = _observability(win, [*pims, pim_end], z_glob, pf, R_g, sigma_floor, rms, prior, imu_cov)
     if not obs["scale_sigma"] <= p.max_scale_sigma or not obs["tilt_sigma_rad"] <= p.max_tilt_sigma_rad:
         return None, (
             f"scale/gravity not observable yet: scale sigma {100 * obs['scale_sigma']:.2f} % (trajectory "
@@ -316,7 +275,7 @@ def dynamic_alignment(
     }, ""
 
 
-def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float, prior, noise: ImuNoise):
+def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float, prior, imu_cov):
     """Step 7: first-order covariance of the window's scale, end velocity, end "up" axis and biases.
 
     Two independent error sources (:mod:`viotb.vio.init_dynamic_cov`): the image noise (the residual RMS,
@@ -334,7 +293,8 @@ def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float
         sigma: Image-noise floor (normalized coordinates).
         rms: Refined reprojection RMS (normalized coordinates).
         prior: Information of the zero-mean prior on ``z_glob`` (units of ``sigma``), shape (11,).
-        noise: IMU noise densities.
+        imu_cov: Joint covariance of the errors of ``pims``, shape (9 (K + 1), 9 (K + 1))
+            (:func:`~viotb.vio.init_dynamic_cov.preintegration_error_cov`).
 
     Returns:
         ``{scale_sigma, length_sigma, length_m, speed_sigma, tilt_sigma_rad, cov_v_B0 (3, 3),
@@ -342,13 +302,13 @@ def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float
         trajectory length (:func:`_trajectory_scale`) and of the end speed.
     """
     inf = {"scale_sigma": np.inf, "length_sigma": np.inf, "speed_sigma": np.inf, "tilt_sigma_rad": np.inf}
-    v0, g, bg, ba, G = _globals(z_glob, R_g)
+    v0, g, bg, ba, G = globals_of(z_glob, R_g)
     n_k = len(win.dts)
     pim_end = pims[-1]
     # 7a. Reprojection Jacobians at the solution and the reduced information (noise: RMS, >= floor).
     r, Jg, Jf, Jpose = reprojection(win, z_glob, pf, R_g, sigma, with_pose=True)
     c2 = max(rms / sigma, 1.0) ** 2
-    H_gg, H_gf, H_ff, _, _ = _normal_equations(win, r, Jg, Jf)
+    H_gg, H_gf, H_ff, _, _ = normal_equations(win, r, Jg, Jf)
     try:
         W = H_gf @ np.linalg.inv(H_ff + 1e-12 * np.eye(3))  # (n_f, G, 3)
         info = (H_gg - np.einsum("nij,nkj->ik", W, H_gf)) / c2 + np.diag(prior)
@@ -362,7 +322,7 @@ def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float
     np.add.at(G_eta[:, :, 0:3], (slice(None), win.obs_frame), np.transpose(G_obs[:, :, 0:3], (1, 0, 2)))
     np.add.at(G_eta[:, :, 6:9], (slice(None), win.obs_frame), np.transpose(G_obs[:, :, 3:6], (1, 0, 2)))
     # 7c. The quantities: trajectory length, end speed, end up axis (3), end velocity (3), bg, ba.
-    R_k, p_k = _poses(win, v0, g, bg, ba)
+    R_k, p_k = frame_poses(win, v0, g, bg, ba)
     J_k = np.zeros((n_k, 3, N_GLOBAL))
     J_k[:, :, 0:3] = win.dts[:, None, None] * np.eye(3)
     J_k[:, :, 3:5] = 0.5 * win.dts[:, None, None] ** 2 * G
@@ -393,7 +353,7 @@ def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float
     # 7d. Covariance of the quantities: image share plus the preintegration share.
     Jq_eta = Jq_eta.reshape(14, -1)
     T = Jq_eta - Jq_g @ cov_g @ G_eta.reshape(N_GLOBAL, -1)
-    cov_q = Jq_g @ cov_g @ Jq_g.T + T @ preintegration_error_cov(pims, noise) @ T.T
+    cov_q = Jq_g @ cov_g @ Jq_g.T + T @ imu_cov @ T.T
     if not np.all(np.isfinite(cov_q)):
         return inf
     var = np.maximum(np.diag(cov_q), 0.0)
@@ -410,153 +370,3 @@ def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float
         "cov_bg": cov_q[8:11, 8:11],
         "cov_ba": cov_q[11:14, 11:14],
     }
-
-
-N_GLOBAL = 11
-"""Global unknowns of the refinement: ``[v0 (3), dg (2), bg (3), ba (3)]``."""
-
-
-def _globals(z: np.ndarray, R_g: np.ndarray):
-    """Unpack ``z = [v0, dg, bg, ba]``, ``g = 9.81 normalize(R_g [dg, 1])``."""
-    u = R_g @ np.array([z[3], z[4], 1.0])
-    n = float(np.linalg.norm(u))
-    g = GRAVITY_M_S2 * u / n
-    G = GRAVITY_M_S2 * (np.eye(3) - np.outer(u, u) / n**2) / n @ R_g[:, :2]
-    return z[0:3], g, z[5:8], z[8:11], G
-
-
-def _poses(win: _Window, v0: np.ndarray, g: np.ndarray, bg: np.ndarray, ba: np.ndarray):
-    """Frame rotations ``R_B0Bk`` (K, 3, 3) and positions ``p_k`` in B0 (K, 3) at the biases."""
-    R_k = np.stack([win.dR[k] @ exp_so3(win.JR_bg[k] @ bg) for k in range(len(win.dts))])
-    t = win.dts[:, None]
-    return R_k, v0 * t + 0.5 * g * t * t + win.dp + win.Jp_bg @ bg + win.Jp_ba @ ba
-
-
-def reprojection(
-    win: _Window, z_glob: np.ndarray, pf: np.ndarray, R_g: np.ndarray, sigma: float, with_pose: bool = False
-):
-    """Residuals and Jacobians of every observation, in units of ``sigma``.
-
-    Args:
-        win: The window.
-        z_glob: ``[v0 (3), dg (2), bg (3), ba (3)]``.
-        pf: Feature positions in B0 (m), shape (n_f, 3).
-        R_g: Gravity-direction chart (see :func:`_globals`).
-        sigma: Normalized image noise.
-        with_pose: Also return ``J_pose (n_obs, 2, 6)``, the Jacobian for an error ``[dtheta, dp]`` of the
-            observation's frame pose (``R_k Exp(dtheta)``, ``p_k + dp``).
-
-    Returns:
-        ``(r (n_obs, 2), J_glob (n_obs, 2, 11), J_feat (n_obs, 2, 3))`` (and ``J_pose``); the gyro-bias
-        Jacobian uses ``Exp(J (bg + d)) ~ Exp(J bg) Exp(J d)`` (Forster eq. 44 to first order).
-    """
-    v0, g, bg, ba, G = _globals(z_glob, R_g)
-    R_k, p_k = _poses(win, v0, g, bg, ba)
-    of, oj = win.obs_frame, win.obs_feat
-    Rk = R_k[of]
-    q = pf[oj] - p_k[of] - Rk @ win.p_BC
-    u = np.einsum("nji,nj->ni", Rk, q)  # in B_k
-    p_C = u @ win.R_BC  # R_BC^T u
-    z = np.where(np.abs(p_C[:, 2]) < 1e-6, 1e-6, p_C[:, 2])
-    r = (p_C[:, :2] / z[:, None] - win.obs_xy) / sigma
-    P = np.zeros((len(z), 2, 3))
-    P[:, 0, 0] = P[:, 1, 1] = 1.0 / z
-    P[:, :, 2] = -p_C[:, :2] / z[:, None] ** 2
-    P /= sigma
-    A = P @ win.R_BC.T @ np.transpose(Rk, (0, 2, 1))  # d r / d q, (n, 2, 3)
-    t = win.dts[of][:, None, None]
-    J_glob = np.zeros((len(z), 2, N_GLOBAL))
-    J_glob[:, :, 0:3] = -A * t
-    J_glob[:, :, 3:5] = -(A * (0.5 * t * t)) @ G
-    skew_u = np.zeros((len(z), 3, 3))
-    up = u + win.p_BC
-    skew_u[:, 0, 1], skew_u[:, 0, 2], skew_u[:, 1, 2] = -up[:, 2], up[:, 1], -up[:, 0]
-    skew_u -= np.transpose(skew_u, (0, 2, 1))
-    d_u_d_bg = skew_u @ win.JR_bg[of] - np.transpose(Rk, (0, 2, 1)) @ win.Jp_bg[of]
-    J_glob[:, :, 5:8] = P @ win.R_BC.T @ d_u_d_bg
-    J_glob[:, :, 8:11] = -A @ win.Jp_ba[of]
-    if with_pose:
-        return r, J_glob, A, np.concatenate([P @ win.R_BC.T @ skew_u, -A], axis=2)
-    return r, J_glob, A
-
-
-def _normal_equations(win: _Window, r, J_glob, J_feat, w2: np.ndarray | None = None):
-    """``J^T W J`` and ``J^T W r`` by blocks for rows ``[J_glob, J_feat]``, ``W`` per observation.
-
-    Args:
-        win: The window (which feature each observation belongs to).
-        r: Residuals, shape (n_obs, 2).
-        J_glob: Global columns, shape (n_obs, 2, G).
-        J_feat: Feature columns, shape (n_obs, 2, 3).
-        w2: Weight of each observation's rows, shape (n_obs,) (default: 1).
-
-    Returns:
-        ``(H_gg (G, G), H_gf (n_f, G, 3), H_ff (n_f, 3, 3), b_g (G,), b_f (n_f, 3))``.
-    """
-    n_f, oj = win.n_f, win.obs_feat
-    JW_glob, JW_feat = J_glob, J_feat
-    if w2 is not None:
-        JW_glob, JW_feat = J_glob * w2[:, None, None], J_feat * w2[:, None, None]
-    H_gg = np.einsum("nki,nkj->ij", JW_glob, J_glob)
-    b_g = np.einsum("nki,nk->i", JW_glob, r)
-    H_gf = np.zeros((n_f, J_glob.shape[2], 3))
-    H_ff = np.zeros((n_f, 3, 3))
-    b_f = np.zeros((n_f, 3))
-    np.add.at(H_gf, oj, np.einsum("nki,nkj->nij", JW_glob, J_feat))
-    np.add.at(H_ff, oj, np.einsum("nki,nkj->nij", JW_feat, J_feat))
-    np.add.at(b_f, oj, np.einsum("nki,nk->ni", JW_feat, r))
-    return H_gg, H_gf, H_ff, b_g, b_f
-
-
-def _schur(H_gg, H_gf, H_ff, b_g, b_f, lam: float):
-    """Damped Schur step: ``(S (G, G) undamped-reduced, d_glob (G,), d_feat (n_f, 3))``."""
-    H_ff_d = H_ff + lam * np.einsum("nii->ni", H_ff)[:, :, None] * np.eye(3) + 1e-12 * np.eye(3)
-    H_ff_inv = np.linalg.inv(H_ff_d)
-    W = H_gf @ H_ff_inv  # (n_f, 8, 3)
-    S = H_gg - np.einsum("nij,nkj->ik", W, H_gf)
-    rhs = b_g - np.einsum("nij,nj->i", W, b_f)
-    S_d = S + lam * np.diag(np.diag(H_gg))
-    d_glob = -np.linalg.solve(S_d, rhs)
-    d_feat = -np.einsum("nij,nj->ni", H_ff_inv, b_f + np.einsum("nij,i->nj", H_gf, d_glob))
-    return S, d_glob, d_feat
-
-
-def _refine(win: _Window, R_g, z_glob, pf, sigma: float, prior: np.ndarray, max_iter: int):
-    """Levenberg-Marquardt over ``(z_glob, pf)``, a zero-mean prior of information ``diag(prior)`` on z_glob.
-
-    Returns:
-        ``(z_glob, pf, S, rms)``: ``S`` the reduced information of the reprojection errors alone at the
-        solution (units of ``sigma``), ``rms`` the reprojection RMS in normalized coordinates.
-    """
-
-    def normal_equations(r, Jg, Jf, z):
-        H_gg, H_gf, H_ff, b_g, b_f = _normal_equations(win, r, Jg, Jf)
-        return H_gg + np.diag(prior), H_gf, H_ff, b_g + prior * z, b_f
-
-    lam = 1e-3
-    r, Jg, Jf = reprojection(win, z_glob, pf, R_g, sigma)
-    cost = float(np.sum(r**2) + prior @ z_glob**2)
-    for _ in range(max_iter):
-        try:
-            _, d_glob, d_feat = _schur(*normal_equations(r, Jg, Jf, z_glob), lam)
-        except np.linalg.LinAlgError:
-            break
-        z_new, pf_new = z_glob + d_glob, pf + d_feat
-        r_new, Jg_new, Jf_new = reprojection(win, z_new, pf_new, R_g, sigma)
-        cost_new = float(np.sum(r_new**2) + prior @ z_new**2)
-        if np.isfinite(cost_new) and cost_new < cost:
-            done = cost - cost_new < 1e-6 * cost
-            z_glob, pf, r, Jg, Jf, cost = z_new, pf_new, r_new, Jg_new, Jf_new, cost_new
-            lam = max(lam / 10.0, 1e-9)
-            if done:
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e6:
-                break
-    try:
-        S = _schur(*_normal_equations(win, r, Jg, Jf), 0.0)[0]
-    except np.linalg.LinAlgError:
-        S = np.zeros((N_GLOBAL, N_GLOBAL))
-    rms = float(np.sqrt(np.mean(r**2))) * sigma
-    return z_glob, pf, S, rms
