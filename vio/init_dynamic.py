@@ -14,27 +14,34 @@ with ``c_k = dp_0k + dR_0k p_BC``.
 Steps of :func:`dynamic_alignment`:
 
 1. Frames (evenly subsampled) and the features tracked in enough of them.
-2. Zero-bias preintegration from the first frame to every frame and to the newest IMU sample (readings
-   interpolated linearly between samples, as the propagator does).
-3. The linear system, solved twice: the second time each observation's two rows are divided by the feature
-   depth of the first solution, so that the residuals are normalized image errors.
+2. Zero-bias preintegration from the first frame to every frame and to the newest IMU sample
+   (:class:`~viotb.vio.init_preintegration.RunningPreintegration`, kept between tries; readings
+   interpolated linearly between samples, as the propagator does, each applied at its step's midpoint
+   rotation).
+3. The linear system, solved twice with the features eliminated by the Schur complement: the second time
+   each observation's two rows are divided by the feature depth of the first solution, so that the
+   residuals are normalized image errors.
 4. ``|g0|`` must be near 9.81 (VINS-Mono's ``LinearAlignment`` test; open_vins checks it as well).
 5. ``|g| = 9.81`` enforced, ``v0, p_f`` re-solved with gravity fixed.
 6. Levenberg-Marquardt on the normalized reprojection errors over ``(v0, gravity direction, gyro bias,
-   accelerometer bias, p_f)`` with analytic Jacobians, the features eliminated by the Schur complement (as
-   in any bundle adjustment), the biases entering through the preintegration bias Jacobians (Forster
-   eq. 44), the accelerometer bias with a zero-mean prior (``sigma_accel_bias_m_s2``, as open_vins' MLE
-   step has one): over a short window its vertical part acts like an error of ``|g|`` and scales the
-   trajectory, so it must be in the covariance of the scale.
-7. Observability of the window, instead of a fixed accelerometer-excitation threshold: the marginal 1-sigma
-   of the metric scale (the relative sigma of the window's trajectory length, :func:`_trajectory_scale`)
-   and of the gravity direction, from the reduced information matrix (noise: the residual RMS, at least
-   ``pixel_sigma_px``), must be below ``max_scale_sigma`` / ``max_tilt_sigma_rad``. Constant velocity,
-   rest or pure rotation leave the scale undetermined: the window is refused, not guessed. open_vins gates
-   on the rotation angle (``init_dyn_min_deg``) and on the reciprocal condition number of the information
-   matrix (``init_dyn_min_rec_cond``), VINS-Mono on the accelerometer variance and ``s > 0``; the scale
-   sigma is the quantity those stand in for. Then the reprojection RMS, and the state at the newest IMU
-   sample.
+   accelerometer bias, p_f)`` (:mod:`viotb.vio.init_refine`), the features eliminated by the Schur
+   complement, the biases entering through the preintegration bias Jacobians (Forster eq. 44), the
+   accelerometer bias with a zero-mean prior (``sigma_accel_bias_m_s2``, as open_vins' MLE step has one):
+   over a short window its vertical part acts like an error of ``|g|`` and scales the trajectory, so it
+   must be in the covariance of the scale.
+7. Observability of the window, instead of a fixed accelerometer-excitation threshold: the first-order
+   covariance of the estimate (:func:`_observability`) from the image noise (the reduced information,
+   noise the residual RMS, at least ``pixel_sigma_px``, with the bias prior) and from the IMU
+   (:mod:`viotb.vio.init_dynamic_cov`: preintegration noise, bias random walk, and the scale-factor and
+   misalignment errors that no estimator here calibrates), propagated through the solve. The relative
+   1-sigma of the metric scale (the larger of those of the trajectory length, :func:`_trajectory_scale`,
+   and of the speed at the newest sample) and the 1-sigma of the gravity direction at the newest sample
+   must be below ``max_scale_sigma`` / ``max_tilt_sigma_rad``. Constant velocity, rest or pure rotation
+   leave the scale undetermined: the window is refused, not guessed. open_vins gates on the rotation angle
+   (``init_dyn_min_deg``) and on the reciprocal condition number of the information matrix
+   (``init_dyn_min_rec_cond``), VINS-Mono on the accelerometer variance and ``s > 0``; the scale sigma is
+   the quantity those stand in for. Then the reprojection RMS, and the state at the newest IMU sample with
+   the covariance of step 7.
 """
 
 from __future__ import annotations
@@ -195,9 +202,9 @@ def dynamic_alignment(
         preintegration: Reused between tries (snapshots at every frame of the window); None: a fresh one.
 
     Returns:
-        ``(solution, failure)``: ``solution`` is a dict ``{t_s, R_B0 (gravity-aligned), v0, g, bg, ba,
-        dR_end, dv_end, dp_end, T, g_norm, scale_sigma, tilt_sigma_rad}`` in B0, or None with ``failure``
-        saying why.
+        ``(solution, failure)``: ``solution`` is a dict ``{t_s, v0, g, bg, ba, dR_end, dv_end, dp_end, T,
+        g_norm, rms}`` in B0 with the entries of :func:`_observability`, or None with ``failure`` saying
+        why.
     """
     p = params
     # 1. Frames and tracks.

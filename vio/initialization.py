@@ -16,6 +16,7 @@ scale before it can start (lesson, Chapter 6). Two paths, chosen from the window
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -197,6 +198,8 @@ class InertialInitializer:
         self._preintegration = RunningPreintegration(self.noise)  # reused by successive dynamic tries
         self._frames_fed = 0
         self._last_try_frame = -(10**9)
+        self.dynamic_tries = 0  # dynamic solves run so far, and their CPU time (s)
+        self.dynamic_cpu_s = 0.0
 
     # ------------------------------------------------------------------ input
     def feed_imu(self, sample: ImuSample) -> None:
@@ -299,7 +302,10 @@ class InertialInitializer:
         if self._frames_fed - self._last_try_frame < p.dynamic_try_every_frames:
             return None  # the next dynamic try is due in a frame or two (last_failure: the last try's)
         self._last_try_frame = self._frames_fed
+        t_cpu = time.process_time()
         result = self._dynamic()
+        self.dynamic_tries += 1
+        self.dynamic_cpu_s += time.process_time() - t_cpu
         if result is not None:
             self.last_result = result
         return result
