@@ -7,11 +7,14 @@ scale before it can start (lesson, Chapter 6). Two paths, chosen from the window
   are below thresholds, and no image parallax. The mean specific force is "up" in B, giving roll/pitch
   (yaw = 0 is the gauge); the mean gyro is the gyro bias; velocity and position are zero.
 * Dynamic (:mod:`viotb.vio.init_dynamic`, open_vins ``DynamicInitializer``): as soon as the frames span
-  ``min_dynamic_window_s`` and show parallax, every frame tries the visual-inertial alignment over the
-  frames of the last ``dynamic_window_s`` and accepts it only when the window makes the metric scale and the
-  gravity direction observable (their marginal sigmas below ``max_scale_sigma`` / ``max_tilt_sigma_rad``),
-  not after a fixed accelerometer-excitation threshold. A start in motion initializes as soon as the motion
-  determines the scale; a constant-velocity start never does (its scale is unobservable).
+  ``min_dynamic_window_s`` and show parallax, every ``dynamic_try_every_frames``-th frame tries the
+  visual-inertial alignment over the frames of the last ``dynamic_window_s`` and accepts it only when the
+  window makes the metric scale and the gravity direction observable (their sigmas, image and IMU errors
+  counted, below ``max_scale_sigma`` / ``max_tilt_sigma_rad``), not after a fixed accelerometer-excitation
+  threshold. A start in motion initializes as soon as the motion determines the scale; a constant-velocity
+  start never does (its scale is unobservable), nor does a coordinated turn at constant speed (its scale
+  trades with a body-fixed accelerometer bias, known only to its prior). The covariance handed to the
+  estimator is the solve's.
 """
 
 from __future__ import annotations
@@ -133,8 +136,8 @@ class InitResult:
         cov_diag: Variances of ``[dtheta, dp, dv, dbg, dba]``, shape (15,) (StateEstimate order).
         gravity_norm_m_s2: Measured gravity magnitude (static: mean specific force; dynamic: unconstrained
             least-squares |g|), a health check (lesson Chapter 9: "bad initialization").
-        scale_sigma: Dynamic: the relative 1-sigma of the metric scale that passed the observability test;
-            NaN for static.
+        scale_sigma: Dynamic: the relative 1-sigma of the metric scale that passed the observability test
+            (the larger of the trajectory length's and the end speed's); NaN for static.
         sigma_yaw_rad: 1-sigma of the rotation about world z (rad) that replaces the ``dtheta`` variances
             in that direction (:func:`viotb.vio.state.read_init_record`): the yaw of the first pose is the
             gauge, defined rather than estimated, like its position. NaN: ``cov_diag`` as given.
