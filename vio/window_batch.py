@@ -147,6 +147,11 @@ class BatchPreintegration(ImuPreintegration):
         n = len(dt)
         if n == 0:
             return
+        # The midpoint of two readings is the specific force at mid-step: turn it by half the step's
+        # rotation into the step's start frame (VINS-Mono's midpoint integration rotates each reading by
+        # its own attitude). Applied with the start rotation it leaves a body-frame error of
+        # 1/2 [w dt]x a per step, a velocity drift of |w||a| dt / 2 per second (5 cm/s at 2 rad/s, 200 Hz).
+        a = np.einsum("kij,kj->ki", exp_so3_batch(0.5 * w * dt[:, None]), a)
         # 1. Rotations dR_0..dR_n (the only per-reading loop), increments by cumulative sums.
         steps = exp_so3_batch(w * dt[:, None])
         Jr_dt = right_jacobian_batch(w * dt[:, None]) * dt[:, None, None]
