@@ -87,14 +87,27 @@ class NavState:
 
         Uses ``R_WB``, ``p_WB``, ``v_WB`` and ``omega_B_rad_s`` (bias-corrected rate). ``vio.types`` is one of
         the two ``vio`` modules this room may import (DESIGN.md: the estimate it consumes; ``vio.lie`` for
-        rotation math).
+        rotation math). Called every control tick: the four fields are copied into one read-only buffer
+        and checked at once (the same checks as the constructor's, a third of its cost), the fields being
+        views of it.
+
+        Raises:
+            ValueError: A field of the wrong shape or non-finite, named as the constructor names it.
         """
-        return cls(
-            R_WB=estimate.R_WB,
-            p_WB=estimate.p_WB,
-            v_WB=estimate.v_WB,
-            omega_B=estimate.omega_B_rad_s,
-        )
+        parts = (estimate.R_WB, estimate.p_WB, estimate.v_WB, estimate.omega_B_rad_s)
+        shapes = tuple(np.shape(x) for x in parts)
+        if shapes != ((3, 3), (3,), (3,), (3,)):
+            return cls(R_WB=parts[0], p_WB=parts[1], v_WB=parts[2], omega_B=parts[3])  # raises, naming it
+        buf = np.concatenate((np.ravel(parts[0]), parts[1], parts[2], parts[3])).astype(float, copy=False)
+        if not np.isfinite(buf).all():
+            return cls(R_WB=parts[0], p_WB=parts[1], v_WB=parts[2], omega_B=parts[3])  # raises, naming it
+        buf.setflags(write=False)
+        state = object.__new__(cls)
+        object.__setattr__(state, "R_WB", buf[:9].reshape(3, 3))
+        object.__setattr__(state, "p_WB", buf[9:12])
+        object.__setattr__(state, "v_WB", buf[12:15])
+        object.__setattr__(state, "omega_B", buf[15:18])
+        return state
 
 
 @dataclass(frozen=True)
