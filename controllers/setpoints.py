@@ -103,6 +103,8 @@ class HoverPoint:
     def __post_init__(self) -> None:
         """Validate the position."""
         object.__setattr__(self, "p_W", _vector("HoverPoint", "p_W", self.p_W))
+        # The same immutable record at every time: built once, not at every control tick.
+        object.__setattr__(self, "_setpoint", FlatOutput(p_W=self.p_W, yaw_rad=self.yaw_rad))
 
     @property
     def duration_s(self) -> float:
@@ -111,7 +113,7 @@ class HoverPoint:
 
     def sample(self, t_s: float) -> FlatOutput:
         """The hover point, at rest."""
-        return FlatOutput(p_W=self.p_W, yaw_rad=self.yaw_rad)
+        return self._setpoint
 
 
 class Waypoints:

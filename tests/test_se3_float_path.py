@@ -153,3 +153,21 @@ def test_mixer_float_path_matches_matrix_inverse(vehicle):
         np.testing.assert_allclose(mixer.motor_thrusts_f(*w.tolist()), inv @ w, rtol=1e-13, atol=1e-13)
     with pytest.raises(ValueError, match="finite"):
         mixer.motor_thrusts_f(float("nan"), 0.0, 0.0, 0.0)
+
+
+def test_records_check_all_fields_in_one_buffer_and_name_the_bad_one():
+    """NavState / FlatOutput (one shared buffer) still reject a bad field by name and stay read-only."""
+    R = np.eye(3)
+    with pytest.raises(ValueError, match=r"NavState\.omega_B: non-finite"):
+        NavState(R_WB=R, p_WB=np.zeros(3), v_WB=np.zeros(3), omega_B=np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(ValueError, match=r"FlatOutput\.a_W: expected shape \(3,\)"):
+        FlatOutput(p_W=np.zeros(3), a_W=np.zeros(4))
+    state = NavState(R_WB=R, p_WB=[1, 2, 3])
+    np.testing.assert_array_equal(state.p_WB, [1.0, 2.0, 3.0])
+    assert state.p_WB.dtype == np.float64 and state.R_WB.shape == (3, 3)
+    with pytest.raises(ValueError):
+        state.R_WB[0, 0] = 2.0
+    source = np.array([0.5, 0.0, 0.0])
+    sp = FlatOutput(p_W=source)
+    source[0] = 9.0  # a copy: the record does not follow its input
+    assert sp.p_W[0] == 0.5

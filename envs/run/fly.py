@@ -139,8 +139,7 @@ def fly(
         if phase == "ground" or est is None or setpoint is None:
             thrusts = np.zeros(4)
         else:
-            cmd = controller.update(loop.t_s, NavState.from_estimate(est), setpoint)
-            thrusts = cmd.thrusts_N
+            thrusts = controller.thrusts(loop.t_s, NavState.from_estimate(est), setpoint)
         loop.advance(thrusts, ctrl_dt)
         tr = loop.truth()
         airborne = phase != "ground" and (loop.t_s - seq.plan_t0_s > 1.0 or phase != "takeoff")
