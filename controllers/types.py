@@ -38,12 +38,11 @@ def checked_arrays(owner: str, fields: tuple[tuple[str, object, tuple[int, ...]]
     Raises:
         ValueError: A value of the wrong shape or with a non-finite entry, naming the field.
     """
-    for name, value, shape in fields:
-        if np.shape(value) != shape:
-            raise ValueError(f"{owner}.{name}: expected shape {shape}, got {np.shape(value)}")
-    buf = np.concatenate([np.ravel(value) for _, value, _ in fields]).astype(float, copy=False)
-    if buf.base is not None or buf.dtype != np.float64:
-        buf = np.array(buf, dtype=float)
+    parts = [value if type(value) is np.ndarray else np.asarray(value) for _, value, _ in fields]
+    for (name, _, shape), part in zip(fields, parts, strict=True):
+        if part.shape != shape:
+            raise ValueError(f"{owner}.{name}: expected shape {shape}, got {part.shape}")
+    buf = np.concatenate(parts, axis=None, dtype=float)  # a new, flat float buffer
     buf.setflags(write=False)  # before the views: a view of a writable buffer would stay writable
     out, start = [], 0
     for _, _, shape in fields:

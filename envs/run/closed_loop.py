@@ -61,6 +61,16 @@ _COS_MAX_TILT = math.cos(math.radians(80.0))
 """Crash test: a body z axis more than 80 deg from vertical."""
 
 
+def _read_only(arr: np.ndarray) -> np.ndarray:
+    arr.setflags(write=False)
+    return arr
+
+
+_ZERO3 = _read_only(np.zeros(3))
+_ZERO_COV = _read_only(np.zeros((15, 15)))
+"""The truth's biases and covariance (zero), shared read-only by every ``ground-truth`` feed."""
+
+
 def _rotz(yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -285,7 +295,16 @@ class ClosedLoopSim:
             return  # this physics state was already fed (same record, same estimate)
         self._truth_fed = tr
         self.estimator.feed_truth(
-            StateEstimate(t_s=tr.t_s, R_WB=tr.R_WB, p_WB=tr.p_WB, v_WB=tr.v_WB, omega_B_rad_s=tr.omega_B)
+            StateEstimate(
+                t_s=tr.t_s,
+                R_WB=tr.R_WB,
+                p_WB=tr.p_WB,
+                v_WB=tr.v_WB,
+                gyro_bias_rad_s=_ZERO3,
+                accel_bias_m_s2=_ZERO3,
+                omega_B_rad_s=tr.omega_B,
+                cov=_ZERO_COV,
+            )
         )
 
     def _apply_wind(self, dt: float) -> None:
