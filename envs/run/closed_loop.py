@@ -156,7 +156,7 @@ class ClosedLoopSim:
         self._crash_lo = None if self._bounds is None else np.subtract(self._bounds[0], 0.5)
         self._crash_hi = None if self._bounds is None else np.add(self._bounds[1], 0.5)
         # truth() memo: the TruthState of one physics state, keyed on (time, qpos, qvel) (see truth()).
-        self._truth_key: bytes | None = None
+        self._truth_key: tuple | None = None
         self._truth: TruthState | None = None
         self._truth_fed: TruthState | None = None
         self._pending: deque[tuple[float, CameraFrame]] = deque()
@@ -205,7 +205,7 @@ class ClosedLoopSim:
         truth several times per low-level tick: the ``ground-truth`` estimate, the crash test, ``info``).
         """
         data = self.sim.data
-        key = data.qpos.tobytes() + data.qvel.tobytes() + np.float64(data.time).tobytes()
+        key = (data.time, data.qpos.tobytes(), data.qvel.tobytes())
         if key != self._truth_key:
             R_WB, p_WB = self.sim.pose()
             tr = TruthState(self.t_s, R_WB, p_WB, self.sim.velocity_W(), self.sim.angular_velocity_B())
