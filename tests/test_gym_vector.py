@@ -23,7 +23,7 @@ def _single_rollout(seed: int, actions: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-@pytest.mark.parametrize("mode", ["sync", "async"])
+@pytest.mark.parametrize("mode", ["sync", pytest.param("async", marks=pytest.mark.slow)])  # async: spawns
 def test_vector_copies_match_single_envs(mode):
     """Copy i of a vector reset with seed s is the single env reset with seed s + i, step for step."""
     rng = np.random.default_rng(1)
