@@ -29,7 +29,8 @@ def checked_arrays(owner: str, fields: tuple[tuple[str, object, tuple[int, ...]]
     """:func:`checked_array` for several fields at once: read-only float views of one checked buffer.
 
     The records built every control tick (setpoints, navigation states) validate four small arrays each;
-    one copy and one finiteness check over all of them cost a third of four separate ones.
+    one copy and one finiteness check over all of them cost less than half of four separate ones (5 us
+    against 12 us for a navigation state, on the loaded 2-core machine).
 
     Args:
         owner: Record name for the error message.
@@ -46,9 +47,9 @@ def checked_arrays(owner: str, fields: tuple[tuple[str, object, tuple[int, ...]]
     buf.setflags(write=False)  # before the views: a view of a writable buffer would stay writable
     out, start = [], 0
     for _, _, shape in fields:
-        size = math.prod(shape)
-        out.append(buf[start : start + size].reshape(shape))
-        start += size
+        stop = start + math.prod(shape)
+        out.append(buf[start:stop] if len(shape) == 1 else buf[start:stop].reshape(shape))
+        start = stop
     if not np.isfinite(buf).all():
         for (name, _, _), arr in zip(fields, out, strict=True):
             if not np.isfinite(arr).all():
