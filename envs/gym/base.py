@@ -19,6 +19,7 @@ from the estimator only.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import gymnasium
@@ -354,7 +355,7 @@ class VioQuadEnv(gymnasium.Env):
         reason = ""
         for _ in range(self._n_inner):
             est = loop.estimate()
-            if est is None or loop.health().diverged or not np.isfinite(est.p_WB).all():
+            if est is None or loop.health().diverged or not all(map(math.isfinite, est.p_WB.tolist())):
                 reason = "diverged"
                 break
             loop.advance(self._thrusts(a, est), self.config.inner_ctrl_dt)
