@@ -10,6 +10,7 @@ Usage::
 
     python benchmarks/init_moving_start.py --seeds 0-19
     python benchmarks/init_moving_start.py --seeds 0-4 --estimator window
+    python benchmarks/init_moving_start.py --seeds 0-19 --motions hover,circle --max-delay-s 2
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import argparse
 import json
 
 import numpy as np
-from viotb.envs.run.init_check import moving_start_monte_carlo
+from viotb.envs.run.init_check import MOVING_STARTS, moving_start_monte_carlo
 
 
 def _seeds(text: str) -> list[int]:
@@ -29,7 +30,7 @@ def _seeds(text: str) -> list[int]:
 
 
 def summarize(rows: list[dict]) -> dict:
-    """Per motion: ``runs``, ``initialized``, ``delay_s_median``, ``delay_s_max``, ``worst_scale_error``."""
+    """Per motion: runs, initialized, delays (median, max), worst scale and tilt errors, CPU per try."""
     out = {}
     for motion in dict.fromkeys(r["motion"] for r in rows):
         rs = [r for r in rows if r["motion"] == motion]
@@ -42,6 +43,12 @@ def summarize(rows: list[dict]) -> dict:
             "delay_s_max": float(np.max(delays)) if delays else None,
             "worst_scale_error": float(max(abs(r["scale_error"]) for r in ok)) if ok else None,
             "worst_tilt_error_deg": float(max(r["tilt_error_deg"] for r in ok)) if ok else None,
+            "over_2pct": sum(1 for r in ok if not abs(r["scale_error"]) <= 0.02),
+            "worst_scale_error_over_sigma": (
+                float(max(abs(r["scale_error"]) / r["scale_sigma"] for r in ok)) if ok else None
+            ),
+            "cpu_per_try_s_median": float(np.nanmedian([r["cpu_per_try_s"] for r in rs])),
+            "tries_median": float(np.median([r["dynamic_tries"] for r in rs])),
         }
     return out
 
@@ -51,8 +58,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0-4", help="e.g. 0-19 or 0,3,5")
     ap.add_argument("--estimator", default="msckf", choices=("msckf", "window"))
+    ap.add_argument("--motions", default="", help="comma-separated subset of MOVING_STARTS (default: all)")
+    ap.add_argument("--max-delay-s", type=float, default=5.0, help="give up this long after the first image")
     args = ap.parse_args()
-    rows = moving_start_monte_carlo(_seeds(args.seeds), estimator=args.estimator)
+    starts = MOVING_STARTS
+    if args.motions:
+        wanted = args.motions.split(",")
+        unknown = sorted(set(wanted) - {m for m, _ in MOVING_STARTS})
+        if unknown:
+            ap.error(f"--motions: unknown {unknown}; known: {[m for m, _ in MOVING_STARTS]}")
+        starts = tuple(s for s in MOVING_STARTS if s[0] in wanted)
+    rows = moving_start_monte_carlo(
+        _seeds(args.seeds), starts, estimator=args.estimator, max_delay_s=args.max_delay_s
+    )
     print(json.dumps({"summary": summarize(rows), "rows": rows}, indent=1, default=float))
 
 

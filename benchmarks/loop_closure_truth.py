@@ -19,6 +19,9 @@ feeds the earlier run's odometry (``estimate_odometry_tum.txt``) to the current 
 change of the closer on the same seeds in seconds instead of minutes (no blackout handling: health records
 are not kept).
 
+``--set SECTION.FIELD=VALUE`` (repeatable) overrides one loop-closure parameter for an A/B check, e.g.
+``--set verification.weight_by_octave=false`` or ``--set verification.max_yaw_sigma_deg=1.0``.
+
 ``--frontend sim`` runs the estimator on the recording's simulated feature tracks (fast); the loop closer
 still works on the rendered images, so the closures are the same kind as on KLT, only the odometry differs.
 """
@@ -42,6 +45,7 @@ from viotb.envs.run.loop_glue import LoopOptions, apply_loop_closure, estimates_
 from viotb.envs.scenarios.registry import get_scenario, register
 from viotb.vio.headset_metrics import interpolate_poses
 from viotb.vio.lie import log_so3, quat_wxyz_to_rotmat
+from viotb.vio.loop import LoopClosureParams
 from viotb.vio.metrics import evaluate_trajectory
 from viotb.vio.types import StateEstimate
 
@@ -51,6 +55,26 @@ def _seeds(text: str) -> list[int]:
         a, b = text.split("-")
         return list(range(int(a), int(b) + 1))
     return [int(s) for s in text.split(",")]
+
+
+def loop_params(settings: list[str]) -> LoopClosureParams:
+    """Default loop-closure parameters with ``SECTION.FIELD=VALUE`` overrides (JSON values).
+
+    Raises:
+        ValueError: A setting that is not ``SECTION.FIELD=VALUE``, or names no parameter.
+    """
+    params = LoopClosureParams()
+    for item in settings:
+        key, sep, text = item.partition("=")
+        section, dot, name = key.partition(".")
+        if not (sep and dot) or not hasattr(params, section):
+            raise ValueError(f"--set {item!r}: expected SECTION.FIELD=VALUE with a LoopClosureParams section")
+        sub = getattr(params, section)
+        if name not in {f.name for f in dataclasses.fields(sub)}:
+            raise ValueError(f"--set {item!r}: {type(sub).__name__} has no field {name!r}")
+        value = json.loads(text)
+        params = dataclasses.replace(params, **{section: dataclasses.replace(sub, **{name: value})})
+    return params
 
 
 def closure_errors(dataset_dir: Path, csv_path: Path) -> list[tuple[float, float]]:
@@ -74,7 +98,7 @@ def closure_errors(dataset_dir: Path, csv_path: Path) -> list[tuple[float, float
     return out
 
 
-def reclose(dataset_dir: Path, eval_dir: Path) -> dict:
+def reclose(dataset_dir: Path, eval_dir: Path, params: LoopClosureParams | None = None) -> dict:
     """Run the loop closer again on a kept recording with the odometry of an earlier evaluation.
 
     Rewrites ``eval_dir/loop_closures.csv``; returns the loop keys and ``ate_posyaw_m`` of the new final
@@ -86,7 +110,8 @@ def reclose(dataset_dir: Path, eval_dir: Path) -> dict:
         StateEstimate(float(t), quat_wxyz_to_rotmat(q), p.copy(), np.zeros(3))
         for t, q, p in zip(odo.t_s, odo.quat_wxyz_WB, odo.p_WB, strict=True)
     ]
-    final, res = apply_loop_closure(ds, estimates, [], LoopOptions(), Path(eval_dir))
+    opts = LoopOptions(params or LoopClosureParams())
+    final, res = apply_loop_closure(ds, estimates, [], opts, Path(eval_dir))
     res["ate_posyaw_m"] = evaluate_trajectory(estimates_to_trajectory(final), ds.groundtruth)["ate_posyaw_m"]
     return res
 
@@ -104,7 +129,9 @@ def main() -> None:
     ap.add_argument("--frontend", choices=("klt", "sim"), default="klt", help="The estimator's front end.")
     ap.add_argument("--keep", action="store_true", help="Keep the recordings.")
     ap.add_argument("--reclose", action="store_true", help="Rerun only the closer on kept recordings.")
+    ap.add_argument("--set", action="append", default=[], help="SECTION.FIELD=VALUE parameter override.")
     args = ap.parse_args()
+    params = loop_params(args.set)
     name = args.scenario
     if args.scene is not None:
         base = get_scenario(name)
@@ -114,10 +141,10 @@ def main() -> None:
     for seed in _seeds(args.seeds):
         data, ev = args.out / f"{name}-{seed}" / "data", args.out / f"{name}-{seed}" / "eval"
         if args.reclose:
-            res = reclose(data, ev)
+            res = reclose(data, ev, params)
         else:
             record_scenario(name, data, seed=seed, seconds=args.seconds, overwrite=True)
-            opts = EvalOptions(frontend=args.frontend, loop=LoopOptions())
+            opts = EvalOptions(frontend=args.frontend, loop=LoopOptions(params))
             res = evaluate_dataset(data, ev, opts, overwrite=True)
         errs = closure_errors(data, ev / "loop_closures.csv")
         worst_m = max((e[0] for e in errs), default=0.0)
@@ -143,6 +170,7 @@ def main() -> None:
     summary = {
         "scenario": name,
         "frontend": "as kept (--reclose)" if args.reclose else args.frontend,
+        "set": args.set,
         "seeds": len(rows),
         "closures": sum(r["closures"] for r in rows),
         "false_closures": sum(r["false_closures"] for r in rows),

@@ -66,6 +66,9 @@ def test_klt_on_real_euroc_frames_of_a_still_rig():
     assert np.median(np.linalg.norm(tracks[2].uv_px[ib] - tracks[0].uv_px[ia], axis=1)) < 0.2
     # Normalized coordinates re-distort to the measured pixels (OpenCV undistortion vs our camera model).
     np.testing.assert_allclose(cam.normalized_to_pixels(tracks[2].xy_norm), tracks[2].uv_px, atol=1e-6)
+    # Coordinates carried over from the previous frame are exactly a fresh undistortion of the pixels.
+    for t in tracks:
+        np.testing.assert_array_equal(t.xy_norm, trk.undistort(t.uv_px))
 
 
 def test_sim_tracker_undistorts_and_handles_empty():
@@ -138,7 +141,8 @@ def test_klt_backward_pass_on_kept_points_equals_the_full_forward_backward_check
     good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_error_px)
     good &= cam.in_image(p1.reshape(-1, 2).astype(float), p.border_px)
     assert 0 < good.sum() < len(prev)  # the check rejects some points and keeps most
-    pts, ids = trk._track(img1)
+    pts, ids, xy = trk._track(img1)
     kept = np.isin(ids, trk._prev_ids[good])
     assert kept.all()  # RANSAC only removes more
     np.testing.assert_array_equal(pts, p1.reshape(-1, 2)[good][np.isin(trk._prev_ids[good], ids)])
+    np.testing.assert_array_equal(xy, trk.undistort(pts))  # each kept point undistorted once, the same

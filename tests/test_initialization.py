@@ -245,7 +245,8 @@ def test_dynamic_init_refuses_constant_velocity_as_scale_unobservable():
     res = _feed_synthetic(init, 1.5, False, np.zeros(3), rng, try_each_frame=True, failures=failures)
     assert not init.is_still()  # features move: parallax rules out "still"
     tried = [f for f in failures if "waiting" not in f]
-    assert res is None and len(tried) == 21  # every frame from 0.5 s to 1.5 s was tried and refused
+    # Every frame from 0.5 s to 1.5 s reports a refusal (a dynamic try on every second frame).
+    assert res is None and len(tried) == 21
     # Refused: the scale is not determined, or no scale fits (the free |g| or the reprojection RMS).
     assert all("not observable" in f or "reprojection RMS" in f or "|g|" in f for f in tried)
 
@@ -288,7 +289,9 @@ def test_trajectory_scale_functional_is_linear_in_the_scale():
 
 def test_refinement_jacobians_match_finite_differences():
     """The analytic reprojection Jacobians of the refinement against central differences."""
-    from viotb.vio.init_dynamic import _Window, preintegrate_to, reprojection, select_tracks
+    from viotb.vio.init_dynamic import _Window, select_tracks
+    from viotb.vio.init_preintegration import preintegrate_to
+    from viotb.vio.init_refine import reprojection
 
     rng = np.random.default_rng(1)
     init = InertialInitializer(CALIB, ImuNoise(), InitParams(window_s=1.0))

@@ -22,7 +22,7 @@ from viotb.envs.data.euroc import load_image, read_euroc
 from viotb.vio.lie import log_so3, rotz
 from viotb.vio.loop import LoopCloser, LoopClosureParams, PlaceRecognitionParams, RigidTransform
 from viotb.vio.loop.bow import train_vocabulary
-from viotb.vio.loop.map_io import MAP_KEYS, read_map_arrays
+from viotb.vio.loop.map_io import MAP_KEYS, MAP_OPTIONAL_KEYS, read_map_arrays
 
 MICRO = EUROC_MICRO
 pytestmark = pytest.mark.skipif(not MICRO.is_dir(), reason="EuRoC micro set not present")
@@ -137,10 +137,14 @@ def test_map_round_trip_is_exact(first_run, tmp_path):
     loaded.load_map(tmp_path / "a.npz")
     loaded.save_map(tmp_path / "b.npz")
     a, b = read_map_arrays(tmp_path / "a.npz"), read_map_arrays(tmp_path / "b.npz")
-    for key in MAP_KEYS:
+    for key in MAP_KEYS + MAP_OPTIONAL_KEYS:
         assert a[key].dtype == b[key].dtype, key
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     assert len(a["kf_t_s"]) == len(closer.db)
+    # The ORB pyramid levels travel with the map (the verification weights by them).
+    octaves = np.concatenate([k.octaves for k in closer.db.keyframes])
+    np.testing.assert_array_equal(a["keypoint_octave"], octaves)
+    assert a["keypoint_octave"].max() > 0
 
 
 def test_new_run_with_a_loaded_map_localizes_into_the_map_frame(first_run, scene, tmp_path):

@@ -16,6 +16,7 @@ from viotb.envs.run.init_check import check_initialization, moving_start_monte_c
 from viotb.envs.scenarios.motions import TRAJECTORY_FACTORIES, MotionParams, StillStart, TimeShifted
 from viotb.envs.scenarios.registry import get_scenario
 from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
+from viotb.vio.initialization import InitParams
 from viotb.vio.lie import quat_wxyz_to_rotmat
 
 
@@ -75,15 +76,23 @@ def aggressive_start():
 
 
 def test_moving_start_initializes_dynamically_against_truth(aggressive_start):
-    """The MSCKF on a moving start: a dynamic initialization with the scale and velocity right."""
+    """The MSCKF on a moving start: a dynamic initialization with the scale and velocity right.
+
+    It starts 1.8 s after the first image (on all 20 seeds of the benchmark), when the reported scale sigma
+    first drops below 0.67 %; the scale error is within 3 of its sigmas (the sigma is honest: over 20
+    seeds the largest ratio is 1.35).
+    """
     check = aggressive_start
-    assert check.method == "dynamic" and check.delay_s < 3.0
+    assert check.method == "dynamic" and check.delay_s < 2.0
     assert abs(check.scale_error) < 0.02
+    assert 0.0 < check.scale_sigma <= InitParams().max_scale_sigma
+    assert abs(check.scale_error) <= 3.0 * check.scale_sigma
     assert check.velocity_error_m_s < 0.05 * check.speed_m_s + 0.02
+    assert 0 < check.dynamic_tries <= 20  # a try every second frame from 0.5 s on
 
 
 def test_moving_start_gravity_direction_within_2_deg(aggressive_start):
-    """The gravity direction of that start (1.9 deg here; up to 3 deg on other seeds, see the report)."""
+    """The gravity direction of that start (0.5 deg here; up to 2.1 deg, 2 of its sigmas, over 20 seeds)."""
     assert aggressive_start.tilt_error_deg < 2.0
 
 
@@ -98,7 +107,7 @@ def test_constant_velocity_start_refuses_to_initialize():
 
 @pytest.fixture(scope="module")
 def monte_carlo_20():
-    """Every moving start of the library (``MOVING_STARTS``) over 20 seeds, sim front end (about an hour)."""
+    """Every moving start (``MOVING_STARTS``) over 20 seeds, sim front end (~10 CPU-minutes)."""
     return moving_start_monte_carlo(list(range(20)))
 
 
@@ -110,7 +119,15 @@ def test_moving_start_monte_carlo_never_initializes_wrong(monte_carlo_20):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="open (issue #13): gentle moving starts need more than 1.5 s")
+def test_moving_start_monte_carlo_scale_sigma_is_honest(monte_carlo_20):
+    """Over 20 seeds the scale errors at initialization stay within 3.5 of their reported sigmas."""
+    ok = [r for r in monte_carlo_20 if r["t_init_s"] is not None and np.isfinite(r["scale_error"])]
+    ratios = [abs(r["scale_error"]) / r["scale_sigma"] for r in ok]
+    assert ok and max(ratios) <= 3.5, ratios
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open (issue #13): no start initializes within 1.5 s (see the report)")
 def test_moving_start_monte_carlo_initializes_within_1_5_s(monte_carlo_20):
     """The issue's target: initialized within 1.5 s of the first image on every moving start."""
     late = [r for r in monte_carlo_20 if not r["delay_s"] <= 1.5]

@@ -22,7 +22,10 @@ def _only(baseline: dict, case: str) -> dict:
 def test_passes_on_committed_baseline_and_is_deterministic(hover_result):
     base = _only(load_baseline(DEFAULT_BASELINE), "hover-sim")
     rows = compare(hover_result, base)
-    assert rows and all(r["ok"] for r in rows), rows
+    # The timing ratio depends on the machine's load (a benchmark, checked by `viotb regress` itself);
+    # every accuracy metric must pass.
+    accuracy = [r for r in rows if r["metric"] != "timing_ratio"]
+    assert len(accuracy) >= 5 and all(r["ok"] for r in accuracy), accuracy
     # Same seed, same metrics up to BLAS round-off across processes (measured 1.4e-9 relative).
     for metric in ("ate_m", "final_err_m", "nees_pos"):
         assert hover_result["cases"]["hover-sim"][metric] == pytest.approx(
@@ -37,7 +40,7 @@ def test_fails_on_degraded_filter():
         params=MsckfParams(pixel_sigma_px=8.0, max_clones=4, keyframing=KeyframeParams(every_n_frames=1)),
     )
     rows = compare(bad, _only(load_baseline(DEFAULT_BASELINE), "hover-sim"))
-    assert not all(r["ok"] for r in rows)
+    assert any(not r["ok"] for r in rows if r["metric"] != "timing_ratio"), rows
 
 
 def test_fails_on_perturbed_baseline_and_bad_files(hover_result, tmp_path):
@@ -69,7 +72,8 @@ def test_short_run_is_compared_on_the_short_cases_only(hover_result, tmp_path):
     assert set(case_names(full=True)) <= set(base["cases"]) and set(IMAGE_CASES) <= set(base["cases"])
     assert not set(IMAGE_CASES) & set(case_names(full=False))
     rows = compare(hover_result, base, cases=("hover-sim",))
-    assert {r["case"] for r in rows} == {"hover-sim"} and all(r["ok"] for r in rows)
+    assert {r["case"] for r in rows} == {"hover-sim"}
+    assert all(r["ok"] for r in rows if r["metric"] != "timing_ratio")  # timing: load-dependent
     # Without the filter every case the run lacks fails as missing.
     missing = [r for r in compare(hover_result, base) if r["metric"] == "(missing)"]
     assert {r["case"] for r in missing} == set(base["cases"]) - {"hover-sim"}

@@ -1,5 +1,7 @@
 """Tests of vio/state.py: named blocks, covariance bookkeeping against closed forms."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from viotb.vio.lie import exp_so3
@@ -18,6 +20,7 @@ from viotb.vio.state import (
     marginal_covariance,
     marginalize,
     marginalize_oldest_clone,
+    read_init_record,
 )
 
 
@@ -131,3 +134,32 @@ def test_bad_covariance_shape_is_a_clear_error():
     imu = ImuValues(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
     with pytest.raises(ValueError, match="imu_cov must have shape"):
         State(0.0, imu, np.eye(14), np.eye(3), np.zeros(3))
+
+
+def test_init_record_yaw_gauge_sets_world_yaw_variance_and_keeps_tilt():
+    """``sigma_yaw_rad``: the world-z part of the body-frame orientation error gets the gauge's variance.
+
+    Closed form: for ``R_WB = R_hat Exp(dtheta)`` the world-frame rotation error is ``R_hat dtheta``, so its
+    z variance is ``z^T R Sigma R^T z`` and must equal ``sigma_yaw^2``; any direction orthogonal to
+    ``u = R^T z`` keeps the tilt variance. Without the field the covariance is the plain diagonal.
+    """
+    from viotb.vio.initialization import InitResult
+
+    R_WB = exp_so3(np.array([0.3, -0.2, 1.1]))
+    cov_diag = np.concatenate([np.full(3, 0.01**2), np.full(3, 1e-6), np.full(3, 1e-4), np.full(6, 1e-6)])
+    base = InitResult(0.0, R_WB, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), "static", cov_diag)
+    _, _, cov_plain = read_init_record(base)
+    np.testing.assert_array_equal(cov_plain, np.diag(cov_diag))
+    gauged = InitResult(
+        0.0, R_WB, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), "static", cov_diag, sigma_yaw_rad=1e-4
+    )
+    _, _, cov = read_init_record(gauged)
+    z = np.array([0.0, 0.0, 1.0])
+    P_theta_W = R_WB @ cov[0:3, 0:3] @ R_WB.T
+    assert z @ P_theta_W @ z == pytest.approx(1e-8, rel=1e-9)
+    for x in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])):
+        assert x @ P_theta_W @ x == pytest.approx(1e-4, rel=1e-9)
+        assert x @ P_theta_W @ z == pytest.approx(0.0, abs=1e-15)
+    np.testing.assert_array_equal(cov[3:, 3:], np.diag(cov_diag[3:]))
+    with pytest.raises(ValueError, match="sigma_yaw_rad"):
+        read_init_record(replace(gauged, sigma_yaw_rad=-1.0))

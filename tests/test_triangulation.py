@@ -107,9 +107,14 @@ def test_batched_triangulation_equals_the_per_feature_reference():
     xy = _observe(R_WC, p_WC, pts, rng, sigma=3.0 / 120.0)
     mask = rng.random((40, 9)) < 0.7
     mask[:, :2] = True  # at least two views each
-    p = TriangulationParams()
+    p = TriangulationParams(step_tolerance=0.0)  # every iteration, as the reference
     res = triangulate(R_WC, p_WC, np.where(mask[..., None], xy, np.nan), mask, p, 120.0)
     for f in range(40):
         p_ref, rms_ref = _triangulate_one(R_WC, p_WC, xy[f], mask[f], p, 120.0)
         np.testing.assert_allclose(res.p_W[f], p_ref, rtol=1e-9, atol=1e-9 * np.linalg.norm(p_ref))
         np.testing.assert_allclose(res.rms_error_px[f], rms_ref, rtol=1e-9, atol=1e-12)
+    # The default stops once every step is below 1e-6 of the parameters: the points move by far less.
+    early = triangulate(R_WC, p_WC, np.where(mask[..., None], xy, np.nan), mask, TriangulationParams(), 120.0)
+    np.testing.assert_array_equal(early.valid, res.valid)
+    np.testing.assert_allclose(early.p_W, res.p_W, rtol=1e-6)
+    np.testing.assert_allclose(early.rms_error_px, res.rms_error_px, rtol=1e-6)

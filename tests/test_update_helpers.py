@@ -11,6 +11,7 @@ from viotb.vio.update_helpers import (
     measurement_compress,
     nullspace_project,
     observability_constrain,
+    observability_projector,
 )
 
 
@@ -93,6 +94,29 @@ def test_measurement_compress_preserves_information():
     np.testing.assert_allclose(Hc.T @ rc, H.T @ r, rtol=1e-10, atol=1e-9)
     small_H, small_r = measurement_compress(H[:10], r[:10])
     assert small_H.shape == (10, 40)
+
+
+def test_measurement_compress_of_constrained_rows_matches_qr_of_the_formed_product():
+    """``right=Pi`` compresses ``H Pi`` without forming it; the QR of the formed ``[H Pi | r]`` agrees."""
+    rng = np.random.default_rng(1)
+    U = rng.normal(size=(30, 4))
+    Pi = observability_projector(U)
+    H = rng.normal(size=(300, 30)) * rng.uniform(0.01, 100.0, size=30)  # badly scaled columns
+    r = rng.normal(size=300)
+    Hc, rc = measurement_compress(H, r, Pi)
+    assert Hc.shape == (26, 30)  # the four directions of U carry no information and are dropped
+    np.testing.assert_allclose(Hc @ U, 0.0, atol=1e-9 * np.abs(Hc).max())
+    T = np.linalg.qr(np.column_stack([H @ Pi, r]), mode="r")  # independent: Householder on the product
+    scale = np.abs(T).max() ** 2
+    np.testing.assert_allclose(Hc.T @ Hc, T[:30, :30].T @ T[:30, :30], atol=1e-10 * scale)
+    np.testing.assert_allclose(Hc.T @ rc, T[:30, :30].T @ T[:30, 30], atol=1e-10 * np.abs(T).max())
+    # Rows without information compress to an empty system (the update then skips).
+    H0c, r0c = measurement_compress(np.zeros((50, 30)), np.zeros(50))
+    assert H0c.shape == (0, 30) and r0c.shape == (0,)
+    # Pi is the symmetric, idempotent projector of observability_constrain.
+    np.testing.assert_allclose(Pi, Pi.T, atol=0.0)
+    np.testing.assert_allclose(Pi @ Pi, Pi, atol=1e-12)
+    np.testing.assert_allclose(H @ Pi, observability_constrain(H, U), atol=1e-9)
 
 
 def test_chi2_table_matches_scipy():

@@ -365,3 +365,53 @@ def test_spin_in_place_does_not_make_every_frame_a_keyframe():
     assert est_c.params.keyframing.rotation_compensated
     assert len(est_c.solve_times_s) < 0.6 * len(est_r.solve_times_s)
     assert ate_c < 1.2 * ate_r and ate_c < 0.02
+
+
+def _anchored_position_nees(motion: str, seed: int) -> float:
+    """Mean position NEES of the window on an 8 s simulated-feature run, anchored at the first pose.
+
+    The covariance refers to the frame the initialization fixed (position and yaw of the first keyframe):
+    ``vio.metrics.anchor_first_pose``, as ``nees_pos_anchored_mean`` of ``viotb eval``.
+    """
+    from viotb.envs.run.replay import monitor_run
+    from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
+    from viotb.vio.lie import rotmat_to_quat_wxyz
+    from viotb.vio.metrics import evaluate_trajectory
+    from viotb.vio.types import TrajectoryArrays
+
+    stream = synthesize_stream(StreamConfig(motion=motion, seconds=8.0, landmark_count=600), seed)
+    prm = WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
+    est = WindowEstimator(stream.calib_given, stream.noise, prm)
+    ok = [
+        e
+        for e in monitor_run(est, stream.imu, stream.frames, stream.time_offset_s).estimates
+        if e is not None
+    ]
+    traj = TrajectoryArrays(
+        np.array([e.t_s for e in ok]),
+        np.array([e.p_WB for e in ok]),
+        np.array([rotmat_to_quat_wxyz(e.R_WB) for e in ok]),
+    )
+    pos_covs = np.array([e.cov_position_W_m2 for e in ok])
+    rot_covs = np.array([e.cov_orientation_rad2 for e in ok])
+    return evaluate_trajectory(traj, stream.truth, pos_covs, rot_covs)["nees_pos_anchored_mean"]
+
+
+def test_position_covariance_consistent_on_a_simulated_circle():
+    """Simulated features with exactly the assumed white noise, 8 s circle (seed 0): anchored NEES 1-5.
+
+    Measured 2.6 (seed 1: 1.3); 3 is consistent for 3 dof. A guard against a change that makes the
+    covariance over- or underconfident where it is right today.
+    """
+    assert 1.0 < _anchored_position_nees("circle", 0) < 5.0
+
+
+@pytest.mark.xfail(strict=True, reason="known: the window is overconfident on this stream (issue 13)")
+def test_position_covariance_consistent_on_a_simulated_figure8():
+    """The same on an 8 s figure-8 (seed 0): measured 7.1 (the MSCKF's 1.4 on the 10 s stream).
+
+    Not the KLT track correlation (the features are white here), nor the prior's linearization point
+    (first-estimate Jacobians leave it), nor the Huber weights (README, "Where the window's overconfidence
+    comes from"). Strict: it fails loudly once fixed.
+    """
+    assert _anchored_position_nees("figure8", 0) < 5.0

@@ -66,18 +66,22 @@ class FeatureDatabase:
             slot = int(free[0])
             self._slot_t[slot] = t_s
             self._has[:, slot] = False
-        cols = np.empty(len(ids), dtype=np.int64)
-        for i, fid in enumerate(ids.tolist()):
-            col = self._id_to_col.get(fid)
-            if col is None:
-                free_cols = np.nonzero(self._col_id < 0)[0]
-                if len(free_cols) == 0:
-                    self._grow()
-                    free_cols = np.nonzero(self._col_id < 0)[0]
-                col = int(free_cols[0])
-                self._col_id[col] = fid
-                self._id_to_col[fid] = col
-            cols[i] = col
+        id_list = np.asarray(ids, dtype=np.int64).ravel().tolist()
+        get = self._id_to_col.get
+        cols = np.fromiter((get(fid, -1) for fid in id_list), dtype=np.int64, count=len(id_list))
+        new = np.flatnonzero(cols < 0)
+        if len(new):
+            # New ids take the lowest free columns in order of first appearance (one search, not one each).
+            new_ids, first = np.unique(np.asarray(id_list)[new], return_index=True)
+            new_ids = new_ids[np.argsort(first)]
+            free_cols = np.flatnonzero(self._col_id < 0)
+            while len(free_cols) < len(new_ids):
+                self._grow()
+                free_cols = np.flatnonzero(self._col_id < 0)
+            take = free_cols[: len(new_ids)]
+            self._col_id[take] = new_ids
+            self._id_to_col.update(zip(new_ids.tolist(), take.tolist(), strict=True))
+            cols[new] = [self._id_to_col[fid] for fid in np.asarray(id_list)[new].tolist()]
         self._xy[cam, slot, cols] = xy_norm
         self._has[cam, slot, cols] = True
 

@@ -104,6 +104,9 @@ class KltParams:
         win_size_px: Lucas-Kanade window side (px).
         pyramid_levels: Extra pyramid levels.
         fb_max_error_px: Largest forward-backward error (px).
+        fb_win_size_px: Lucas-Kanade window side (px) of the backward (check) pass.
+        fb_epsilon_px: Convergence threshold (px) of the backward pass's iterations (the forward pass uses
+            OpenCV's default of 0.01 px with at most 30 iterations).
         ransac_threshold_px: RANSAC epipolar threshold (px, on undistorted points scaled by the focal length).
         ransac_confidence: RANSAC confidence.
         border_px: Features closer than this to the border (px) are dropped.
@@ -124,6 +127,8 @@ class KltParams:
     win_size_px: int = 15
     pyramid_levels: int = 3
     fb_max_error_px: float = 1.0
+    fb_win_size_px: int = 15
+    fb_epsilon_px: float = 0.01
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.99
     border_px: float = 3.0
@@ -148,6 +153,7 @@ class KltTracker:
         self._prev_img: np.ndarray | None = None
         self._prev_pts = np.zeros((0, 2), dtype=np.float32)
         self._prev_ids = np.zeros(0, dtype=np.int64)
+        self._prev_xy = np.zeros((0, 2))  # undistorted normalized coordinates of ``_prev_pts``
         self._next_id = 0
         self._focal_px = 0.5 * (camera.fx + camera.fy)
         self._dist = np.array(camera.distortion, dtype=float)
@@ -193,12 +199,18 @@ class KltTracker:
         self._prev_img = None
         self._prev_pts = np.zeros((0, 2), dtype=np.float32)
         self._prev_ids = np.zeros(0, dtype=np.int64)
+        self._prev_xy = np.zeros((0, 2))
 
-    def _track(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """KLT from the previous frame with forward-backward check and RANSAC; returns (pts, ids)."""
+    def _track(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """KLT from the previous frame with forward-backward check and RANSAC.
+
+        Returns:
+            ``(pts (M, 2) float32 px, ids (M,), xy (M, 2) undistorted normalized)``. Undistortion is per
+            point, so the previous frame's coordinates are reused and each point is undistorted once.
+        """
         p = self.params
         if self._prev_img is None or len(self._prev_pts) == 0:
-            return np.zeros((0, 2), dtype=np.float32), np.zeros(0, dtype=np.int64)
+            return np.zeros((0, 2), dtype=np.float32), np.zeros(0, dtype=np.int64), np.zeros((0, 2))
         lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels}
         p0 = self._prev_pts.reshape(-1, 1, 2)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, None, **lk)
@@ -207,18 +219,25 @@ class KltTracker:
         good = (st1.ravel() == 1) & self.camera.in_image(p1.astype(float), p.border_px)
         fwd = np.flatnonzero(good)
         if len(fwd):
-            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1[fwd].reshape(-1, 1, 2), None, **lk)
+            back = {
+                "winSize": (p.fb_win_size_px, p.fb_win_size_px),
+                "maxLevel": p.pyramid_levels,
+                "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, p.fb_epsilon_px),
+            }
+            p1_fwd = p1[fwd].reshape(-1, 1, 2)
+            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1_fwd, None, **back)
             fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts[fwd], axis=1)
             good[fwd] = (st2.ravel() == 1) & (fb < p.fb_max_error_px)
-        pts, ids, prev = p1[good], self._prev_ids[good], self._prev_pts[good]
+        pts, ids, xy_prev = p1[good], self._prev_ids[good], self._prev_xy[good]
+        xy = self.undistort(pts)
         if len(pts) >= 8:
-            a = self.undistort(prev) * self._focal_px
-            b = self.undistort(pts) * self._focal_px
+            a = xy_prev * self._focal_px
+            b = xy * self._focal_px
             _, inl = cv2.findFundamentalMat(a, b, cv2.FM_RANSAC, p.ransac_threshold_px, p.ransac_confidence)
             if inl is not None:
                 keep = inl.ravel().astype(bool)
-                pts, ids = pts[keep], ids[keep]
-        return pts, ids
+                pts, ids, xy = pts[keep], ids[keep], xy[keep]
+        return pts, ids, xy
 
     def _detect(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """New FAST corners, bucketed on a grid and away from tracked points, shape (N, 2) float32."""
@@ -285,16 +304,17 @@ class KltTracker:
             self.reset()
             return Tracks.empty(frame.t_s, t_imu_s)
         img = self._check_image(frame.image)
-        pts, ids = self._track(img)
+        pts, ids, xy = self._track(img)
         new = self._detect(img, pts)
         if len(new):
             new_ids = np.arange(self._next_id, self._next_id + len(new), dtype=np.int64)
             self._next_id += len(new)
             pts = np.vstack([pts, new]).astype(np.float32)
             ids = np.concatenate([ids, new_ids])
+            xy = np.vstack([xy, self.undistort(new)])
         self._prev_img, self._prev_pts, self._prev_ids = img, pts.astype(np.float32), ids
-        uv = pts.astype(float)
-        return Tracks(frame.t_s, t_imu_s, ids, self.undistort(uv), uv)
+        self._prev_xy = xy
+        return Tracks(frame.t_s, t_imu_s, ids, xy, pts.astype(float))
 
 
 class SimFeatureTracker:

@@ -14,97 +14,56 @@ with ``c_k = dp_0k + dR_0k p_BC``.
 Steps of :func:`dynamic_alignment`:
 
 1. Frames (evenly subsampled) and the features tracked in enough of them.
-2. Zero-bias preintegration from the first frame to every frame and to the newest IMU sample (readings
-   interpolated linearly between samples, as the propagator does).
-3. The linear system, solved twice: the second time each observation's two rows are divided by the feature
-   depth of the first solution, so that the residuals are normalized image errors.
+2. Zero-bias preintegration from the first frame to every frame and to the newest IMU sample
+   (:class:`~viotb.vio.init_preintegration.RunningPreintegration`, kept between tries; readings
+   interpolated linearly between samples, as the propagator does, each applied at its step's midpoint
+   rotation).
+3. The linear system, solved twice with the features eliminated by the Schur complement: the second time
+   each observation's two rows are divided by the feature depth of the first solution, so that the
+   residuals are normalized image errors.
 4. ``|g0|`` must be near 9.81 (VINS-Mono's ``LinearAlignment`` test; open_vins checks it as well).
 5. ``|g| = 9.81`` enforced, ``v0, p_f`` re-solved with gravity fixed.
 6. Levenberg-Marquardt on the normalized reprojection errors over ``(v0, gravity direction, gyro bias,
-   accelerometer bias, p_f)`` with analytic Jacobians, the features eliminated by the Schur complement (as
-   in any bundle adjustment), the biases entering through the preintegration bias Jacobians (Forster
-   eq. 44), the accelerometer bias with a zero-mean prior (``sigma_accel_bias_m_s2``, as open_vins' MLE
-   step has one): over a short window its vertical part acts like an error of ``|g|`` and scales the
-   trajectory, so it must be in the covariance of the scale.
-7. Observability of the window, instead of a fixed accelerometer-excitation threshold: the marginal 1-sigma
-   of the metric scale (the relative sigma of the window's trajectory length, :func:`_trajectory_scale`)
-   and of the gravity direction, from the reduced information matrix (noise: the residual RMS, at least
-   ``pixel_sigma_px``), must be below ``max_scale_sigma`` / ``max_tilt_sigma_rad``. Constant velocity,
-   rest or pure rotation leave the scale undetermined: the window is refused, not guessed. open_vins gates
-   on the rotation angle (``init_dyn_min_deg``) and on the reciprocal condition number of the information
-   matrix (``init_dyn_min_rec_cond``), VINS-Mono on the accelerometer variance and ``s > 0``; the scale
-   sigma is the quantity those stand in for. Then the reprojection RMS, and the state at the newest IMU
-   sample.
+   accelerometer bias, p_f)`` (:mod:`viotb.vio.init_refine`), the features eliminated by the Schur
+   complement, the biases entering through the preintegration bias Jacobians (Forster eq. 44), the
+   accelerometer bias with a zero-mean prior (``sigma_accel_bias_m_s2``, as open_vins' MLE step has one):
+   over a short window its vertical part acts like an error of ``|g|`` and scales the trajectory, so it
+   must be in the covariance of the scale.
+7. Observability of the window, instead of a fixed accelerometer-excitation threshold: the first-order
+   covariance of the estimate (:func:`_observability`) from the image noise (the reduced information,
+   noise the residual RMS, at least ``pixel_sigma_px``, with the bias prior) and from the IMU
+   (:mod:`viotb.vio.init_dynamic_cov`: preintegration noise, bias random walk, and the scale-factor and
+   misalignment errors that no estimator here calibrates), propagated through the solve. The relative
+   1-sigma of the metric scale (the larger of those of the trajectory length, :func:`_trajectory_scale`,
+   and of the speed at the newest sample) and the 1-sigma of the gravity direction at the newest sample
+   must be below ``max_scale_sigma`` / ``max_tilt_sigma_rad``. Constant velocity, rest or pure rotation
+   leave the scale undetermined: the window is refused, not guessed. open_vins gates on the rotation angle
+   (``init_dyn_min_deg``) and on the reciprocal condition number of the information matrix
+   (``init_dyn_min_rec_cond``), VINS-Mono on the accelerometer variance and ``s > 0``; the scale sigma is
+   the quantity those stand in for. Then the reprojection RMS, and the state at the newest IMU sample with
+   the covariance of step 7.
 """
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.lie import exp_so3
-from viotb.vio.preintegration import ImuPreintegration
+from viotb.vio.init_dynamic_cov import preintegration_error_cov
+from viotb.vio.init_preintegration import RunningPreintegration
+from viotb.vio.init_refine import (
+    N_GLOBAL,
+    frame_poses,
+    globals_of,
+    normal_equations,
+    refine,
+    reprojection,
+    schur_step,
+)
+from viotb.vio.lie import skew
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample
 
 Frame = tuple[float, np.ndarray, np.ndarray]
 """One frame of features: ``(t_s, ids (M,), xy_norm (M, 2))``."""
-
-
-def preintegrate_to(
-    samples: list[ImuSample], times: list[float], t_end: float, noise: ImuNoise
-) -> tuple[list[ImuPreintegration], ImuPreintegration]:
-    """Preintegrate (zero bias) from ``times[0]`` to each time and to ``t_end``.
-
-    The readings are instantaneous samples, interpolated linearly between consecutive ones (the
-    propagator's convention, :mod:`viotb.vio.propagator`): each piece between sample and target times is
-    integrated with the interpolated reading at its midpoint (held after the last sample).
-
-    Args:
-        samples: IMU samples in time order, covering ``[times[0], t_end]``.
-        times: Increasing times (s).
-        t_end: Final time (s), ``>= times[-1]``.
-        noise: IMU noise densities.
-
-    Raises:
-        ValueError: The samples do not cover a requested time.
-    """
-    targets = sorted(set([*times, t_end]))
-    pim = ImuPreintegration(np.zeros(3), np.zeros(3), noise)
-    snapshots: dict[float, ImuPreintegration] = {targets[0]: copy.deepcopy(pim)}
-    t = targets[0]
-    ti = 1
-
-    def integrate(k: int, a: float, b: float) -> None:
-        s = samples[k]
-        if k + 1 < len(samples):
-            nxt = samples[k + 1]
-            u = (0.5 * (a + b) - s.t_s) / (nxt.t_s - s.t_s)
-            acc = (1.0 - u) * s.accel_B_m_s2 + u * nxt.accel_B_m_s2
-            gyro = (1.0 - u) * s.gyro_B_rad_s + u * nxt.gyro_B_rad_s
-        else:
-            acc, gyro = s.accel_B_m_s2, s.gyro_B_rad_s
-        pim.integrate(acc, gyro, b - a)
-
-    for k, s in enumerate(samples):
-        t_next = samples[k + 1].t_s if k + 1 < len(samples) else t_end
-        if t_next <= t:
-            continue
-        start = max(s.t_s, t)
-        while ti < len(targets) and targets[ti] <= t_next:
-            if targets[ti] > start:
-                integrate(k, start, targets[ti])
-                start = targets[ti]
-            snapshots[targets[ti]] = copy.deepcopy(pim)
-            ti += 1
-        if t_next > start and ti < len(targets):
-            integrate(k, start, t_next)
-        t = t_next
-        if ti >= len(targets):
-            break
-    if ti < len(targets):
-        raise ValueError(f"IMU data does not cover t={targets[ti]:.3f} s")
-    return [snapshots[tk] for tk in times], snapshots[t_end]
 
 
 def select_tracks(frames: list[Frame], max_frames: int, min_obs: int, max_features: int):
@@ -143,16 +102,6 @@ def _trajectory_scale(p_k: np.ndarray, dp_dx: np.ndarray) -> tuple[float, np.nda
     return float(np.sum(dist)), np.einsum("ki,kin->n", e, dp_dx)
 
 
-def _sigma_along(info: np.ndarray, w: np.ndarray) -> float:
-    """``sqrt(w^T info^-1 w)``; inf when ``info`` is singular or the result is not finite."""
-    try:
-        u = np.linalg.solve(info, w)
-    except np.linalg.LinAlgError:
-        return float("inf")
-    var = float(w @ u)
-    return float(np.sqrt(var)) if np.isfinite(var) and var >= 0.0 else float("inf")
-
-
 def _tilt_sigma_rad(cov_dir: np.ndarray) -> float:
     """Largest 1-sigma (rad) of a 2x2 gravity-direction (tangent) covariance; inf if not finite."""
     if not np.all(np.isfinite(cov_dir)):
@@ -169,6 +118,8 @@ class _Window:
         self.obs_frame = np.array([k for fid in self.fids for k, _ in tracks[fid]])
         self.obs_feat = np.array([j for j, fid in enumerate(self.fids) for _ in tracks[fid]])
         self.obs_xy = np.array([xy for fid in self.fids for _, xy in tracks[fid]])
+        # Observations are grouped by feature, in feature order: the first observation of each.
+        self.feat_starts = np.flatnonzero(np.r_[True, np.diff(self.obs_feat) != 0])
         self.dts = np.array([t - times[0] for t in times])
         self.dR = np.stack([pm.delta_R for pm in pims])
         self.dp = np.stack([pm.delta_p for pm in pims])
@@ -182,20 +133,45 @@ class _Window:
     def n_obs(self) -> int:
         return int(self.obs_xy.shape[0])
 
-    def linear_system(self) -> tuple[np.ndarray, np.ndarray]:
-        """``A x = b`` in ``x = [v0 (3), g0 (3), p_f (3 n_f)]``, two rows per observation."""
-        A = np.zeros((2 * self.n_obs, 6 + 3 * self.n_f))
-        b = np.zeros(2 * self.n_obs)
-        for o in range(self.n_obs):
-            k, j, (x, y) = self.obs_frame[o], self.obs_feat[o], self.obs_xy[o]
-            M = np.array([[1.0, 0.0, -x], [0.0, 1.0, -y]]) @ (self.dR[k] @ self.R_BC).T
-            t = self.dts[k]
-            rows = slice(2 * o, 2 * o + 2)
-            A[rows, 0:3] = -M * t
-            A[rows, 3:6] = -0.5 * M * t * t
-            A[rows, 6 + 3 * j : 9 + 3 * j] = M
-            b[rows] = M @ (self.dp[k] + self.dR[k] @ self.p_BC)
-        return A, b
+    def linear_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The linear system's two rows per observation, by blocks (step 3).
+
+        Returns:
+            ``(A_g (n_obs, 2, 6), A_f (n_obs, 2, 3), b (n_obs, 2))``: the columns of ``[v0, g0]`` and of the
+            observation's feature ``p_f``, and the right-hand side.
+        """
+        k = self.obs_frame
+        xy = self.obs_xy
+        proj = np.zeros((self.n_obs, 2, 3))
+        proj[:, 0, 0] = proj[:, 1, 1] = 1.0
+        proj[:, :, 2] = -xy
+        M = proj @ np.transpose(self.dR[k] @ self.R_BC, (0, 2, 1))  # (n, 2, 3)
+        t = self.dts[k][:, None, None]
+        A_g = np.concatenate([-M * t, -0.5 * M * t * t], axis=2)
+        c = self.dp[k] + self.dR[k] @ self.p_BC
+        return A_g, M, np.einsum("nij,nj->ni", M, c)
+
+    def solve_linear(
+        self, A_g: np.ndarray, A_f: np.ndarray, b: np.ndarray, weights: np.ndarray
+    ) -> np.ndarray | None:
+        """Weighted least squares of the block rows, features eliminated by the Schur complement.
+
+        Args:
+            A_g: Global columns, shape (n_obs, 2, G).
+            A_f: Feature columns, shape (n_obs, 2, 3).
+            b: Right-hand side, shape (n_obs, 2).
+            weights: Row weight of each observation, shape (n_obs,).
+
+        Returns:
+            ``x = [globals (G), p_f (3 n_f)]``, or None when the reduced system is singular.
+        """
+        try:
+            _, d_glob, d_feat = schur_step(*normal_equations(self, b, A_g, A_f, weights**2), 0.0)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(d_glob)):
+            return None
+        return -np.concatenate([d_glob, d_feat.ravel()])
 
     def obs_depths(self, x: np.ndarray) -> np.ndarray:
         """Depth (m) of every observation for the linear ``x``, shape (n_obs,)."""
@@ -213,6 +189,7 @@ def dynamic_alignment(
     calib: CameraCalibration,
     noise: ImuNoise,
     params,
+    preintegration: RunningPreintegration | None = None,
 ):
     """Initialize from a moving window, or refuse.
 
@@ -222,11 +199,12 @@ def dynamic_alignment(
         calib: ``R_BC``, ``p_BC`` and the focal length (for the pixel-noise floor).
         noise: IMU noise densities (preintegration).
         params: :class:`~viotb.vio.initialization.InitParams`.
+        preintegration: Reused between tries (snapshots at every frame of the window); None: a fresh one.
 
     Returns:
-        ``(solution, failure)``: ``solution`` is a dict ``{t_s, R_B0 (gravity-aligned), v0, g, bg, ba,
-        dR_end, dv_end, dp_end, T, g_norm, scale_sigma, tilt_sigma_rad}`` in B0, or None with ``failure``
-        saying why.
+        ``(solution, failure)``: ``solution`` is a dict ``{t_s, v0, g, bg, ba, dR_end, dv_end, dp_end, T,
+        g_norm, rms}`` in B0 with the entries of :func:`_observability`, or None with ``failure`` saying
+        why.
     """
     p = params
     # 1. Frames and tracks.
@@ -238,20 +216,22 @@ def dynamic_alignment(
         )
     # 2. Preintegration.
     t_end = samples[-1].t_s
-    pims, pim_end = preintegrate_to(samples, times, t_end, noise)
+    run = preintegration if preintegration is not None else RunningPreintegration(noise)
+    every = [f[0] for f in frames if times[0] <= f[0] <= t_end]
+    snaps, pim_end = run.snapshots(samples, every, t_end)
+    by_time = dict(zip(every, snaps, strict=True))
+    pims = [by_time[tk] for tk in times]
     win = _Window(times, tracks, pims, calib)
     sigma_floor = p.pixel_sigma_px / float(calib.camera.fx)
 
-    # 3. Weighted linear solve (rows in units of the pixel-noise floor, then also divided by the depth).
-    A, b = win.linear_system()
+    # 3. Weighted linear solve (rows divided by the feature depth of the previous solution).
+    A_g, A_f, b = win.linear_rows()
     weights = np.ones(win.n_obs)
     for _ in range(2):
-        Aw = A * np.repeat(weights, 2)[:, None] / sigma_floor
-        bw = b * np.repeat(weights, 2) / sigma_floor
-        x_lin, *_ = np.linalg.lstsq(Aw, bw, rcond=None)
-        depths = win.obs_depths(x_lin)
+        x_lin = win.solve_linear(A_g, A_f, b, weights)
+        depths = win.obs_depths(x_lin) if x_lin is not None else np.full(win.n_obs, np.nan)
         if not np.all(np.isfinite(depths)):
-            return None, "linear alignment failed (non-finite solution)"
+            return None, "linear alignment failed (singular or non-finite solution)"
         weights = 1.0 / np.maximum(np.abs(depths), p.min_depth_m)
     g_lin = x_lin[3:6]
     g_norm = float(np.linalg.norm(g_lin))
@@ -260,8 +240,9 @@ def dynamic_alignment(
         return None, f"linear alignment gave |g| = {g_norm:.3f} m/s^2 (weak excitation?)"
     # 5. Enforce |g| = 9.81 and re-solve v0, p_f with gravity fixed.
     g_dir0 = g_lin / g_norm
-    keep = np.r_[0:3, 6 : 6 + 3 * win.n_f]
-    x_fix, *_ = np.linalg.lstsq(Aw[:, keep], bw - Aw[:, 3:6] @ (GRAVITY_M_S2 * g_dir0), rcond=None)
+    x_fix = win.solve_linear(A_g[:, :, 0:3], A_f, b - A_g[:, :, 3:6] @ (GRAVITY_M_S2 * g_dir0), weights)
+    if x_fix is None:
+        return None, "linear alignment failed (singular with gravity fixed)"
     # 6. Levenberg-Marquardt on the reprojection errors, features eliminated by the Schur complement.
     tangent = np.linalg.svd(np.eye(3) - np.outer(g_dir0, g_dir0))[0][:, :2]  # (3, 2), orthogonal to g
     R_g = np.column_stack([tangent, g_dir0])  # maps e_z onto g_dir0
@@ -269,28 +250,20 @@ def dynamic_alignment(
     pf = x_fix[3:].reshape(win.n_f, 3).copy()
     prior = np.zeros(N_GLOBAL)
     prior[8:11] = (sigma_floor / p.sigma_accel_bias_m_s2) ** 2  # in units of the reprojection sigma
-    z_glob, pf, S, rms = _refine(win, R_g, z_glob, pf, sigma_floor, prior, p.max_refine_iterations)
+    z_glob, pf, S, rms = refine(win, R_g, z_glob, pf, sigma_floor, prior, p.max_refine_iterations)
     if not np.isfinite(rms) or rms > p.max_reprojection_rms:
         return None, f"refinement reprojection RMS {rms:.4f} > {p.max_reprojection_rms}"
-    # 7. Observability: the marginal covariance of the globals is S^-1 (noise: the RMS, at least the floor).
-    v0, g, bg, ba, G = _globals(z_glob, R_g)
-    _, p_k = _poses(win, v0, g, bg, ba)
-    J_k = np.zeros((len(times), 3, N_GLOBAL))
-    J_k[:, :, 0:3] = win.dts[:, None, None] * np.eye(3)
-    J_k[:, :, 3:5] = 0.5 * win.dts[:, None, None] ** 2 * G
-    J_k[:, :, 5:8] = win.Jp_bg
-    J_k[:, :, 8:11] = win.Jp_ba
-    L, w = _trajectory_scale(p_k, J_k)
-    info = S / max(rms / sigma_floor, 1.0) ** 2 + np.diag(prior)
-    scale_sigma = _sigma_along(info, w) / L if L > 0.0 else float("inf")
-    try:
-        tilt_sigma = _tilt_sigma_rad(np.linalg.inv(info)[3:5, 3:5])
-    except np.linalg.LinAlgError:
-        tilt_sigma = float("inf")
-    if not scale_sigma <= p.max_scale_sigma or not tilt_sigma <= p.max_tilt_sigma_rad:
+    # 7. Observability: the covariance of the scale, the velocity and the gravity direction at the end.
+    v0, g, bg, ba, _ = globals_of(z_glob, R_g)
+    imu_cov = preintegration_error_cov(
+        [*pims, pim_end], noise, p.imu_scale_sigma, p.imu_misalignment_sigma_rad
+    )
+    obs = _observability(win, [*pims, pim_end], z_glob, pf, R_g, sigma_floor, rms, prior, imu_cov)
+    if not obs["scale_sigma"] <= p.max_scale_sigma or not obs["tilt_sigma_rad"] <= p.max_tilt_sigma_rad:
         return None, (
-            f"scale/gravity not observable yet: scale sigma {100 * scale_sigma:.2f} %, tilt sigma "
-            f"{np.rad2deg(tilt_sigma):.2f} deg (window {win.dts[-1]:.2f} s)"
+            f"scale/gravity not observable yet: scale sigma {100 * obs['scale_sigma']:.2f} % (trajectory "
+            f"{100 * obs['length_sigma']:.2f} %, speed {100 * obs['speed_sigma']:.2f} %), tilt sigma "
+            f"{np.rad2deg(obs['tilt_sigma_rad']):.2f} deg (window {win.dts[-1]:.2f} s)"
         )
     dR_end, dv_end, dp_end = pim_end.corrected(bg, ba)
     return {
@@ -304,136 +277,103 @@ def dynamic_alignment(
         "dp_end": dp_end,
         "T": pim_end.dt_s,
         "g_norm": g_norm,
-        "scale_sigma": scale_sigma,
-        "tilt_sigma_rad": tilt_sigma,
+        "rms": rms,
+        **obs,
     }, ""
 
 
-N_GLOBAL = 11
-"""Global unknowns of the refinement: ``[v0 (3), dg (2), bg (3), ba (3)]``."""
+def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float, prior, imu_cov):
+    """Step 7: first-order covariance of the window's scale, end velocity, end "up" axis and biases.
 
-
-def _globals(z: np.ndarray, R_g: np.ndarray):
-    """Unpack ``z = [v0, dg, bg, ba]``, ``g = 9.81 normalize(R_g [dg, 1])``."""
-    u = R_g @ np.array([z[3], z[4], 1.0])
-    n = float(np.linalg.norm(u))
-    g = GRAVITY_M_S2 * u / n
-    G = GRAVITY_M_S2 * (np.eye(3) - np.outer(u, u) / n**2) / n @ R_g[:, :2]
-    return z[0:3], g, z[5:8], z[8:11], G
-
-
-def _poses(win: _Window, v0: np.ndarray, g: np.ndarray, bg: np.ndarray, ba: np.ndarray):
-    """Frame rotations ``R_B0Bk`` (K, 3, 3) and positions ``p_k`` in B0 (K, 3) at the biases."""
-    R_k = np.stack([win.dR[k] @ exp_so3(win.JR_bg[k] @ bg) for k in range(len(win.dts))])
-    t = win.dts[:, None]
-    return R_k, v0 * t + 0.5 * g * t * t + win.dp + win.Jp_bg @ bg + win.Jp_ba @ ba
-
-
-def reprojection(win: _Window, z_glob: np.ndarray, pf: np.ndarray, R_g: np.ndarray, sigma: float):
-    """Residuals and Jacobians of every observation, in units of ``sigma``.
+    Two independent error sources (:mod:`viotb.vio.init_dynamic_cov`): the image noise (the residual RMS,
+    at least ``sigma``), whose share is the inverse of the reduced information ``S + prior``; and the
+    preintegration errors ``eta`` (white noise and bias random walk), which move the estimate by
+    ``-info^-1 G eta`` (``G``: the reduced cross-information of the frame-pose errors) and enter the
+    end state directly.
 
     Args:
         win: The window.
-        z_glob: ``[v0 (3), dg (2), bg (3), ba (3)]``.
-        pf: Feature positions in B0 (m), shape (n_f, 3).
-        R_g: Gravity-direction chart (see :func:`_globals`).
-        sigma: Normalized image noise.
+        pims: Preintegrations from the first frame to every frame and to the end, K + 1 of them.
+        z_glob: Refined ``[v0, dg, bg, ba]``.
+        pf: Refined feature positions (m), shape (n_f, 3).
+        R_g: Gravity-direction chart.
+        sigma: Image-noise floor (normalized coordinates).
+        rms: Refined reprojection RMS (normalized coordinates).
+        prior: Information of the zero-mean prior on ``z_glob`` (units of ``sigma``), shape (11,).
+        imu_cov: Joint covariance of the errors of ``pims``, shape (9 (K + 1), 9 (K + 1))
+            (:func:`~viotb.vio.init_dynamic_cov.preintegration_error_cov`).
 
     Returns:
-        ``(r (n_obs, 2), J_glob (n_obs, 2, 11), J_feat (n_obs, 2, 3))``; the gyro-bias Jacobian uses
-        ``Exp(J (bg + d)) ~ Exp(J bg) Exp(J d)`` (Forster eq. 44 to first order).
+        ``{scale_sigma, length_sigma, length_m, speed_sigma, tilt_sigma_rad, cov_v_B0 (3, 3),
+        cov_bg (3, 3), cov_ba (3, 3)}``: ``scale_sigma`` the larger of the relative sigmas of the
+        trajectory length (:func:`_trajectory_scale`) and of the end speed.
     """
-    v0, g, bg, ba, G = _globals(z_glob, R_g)
-    R_k, p_k = _poses(win, v0, g, bg, ba)
-    of, oj = win.obs_frame, win.obs_feat
-    Rk = R_k[of]
-    q = pf[oj] - p_k[of] - Rk @ win.p_BC
-    u = np.einsum("nji,nj->ni", Rk, q)  # in B_k
-    p_C = u @ win.R_BC  # R_BC^T u
-    z = np.where(np.abs(p_C[:, 2]) < 1e-6, 1e-6, p_C[:, 2])
-    r = (p_C[:, :2] / z[:, None] - win.obs_xy) / sigma
-    P = np.zeros((len(z), 2, 3))
-    P[:, 0, 0] = P[:, 1, 1] = 1.0 / z
-    P[:, :, 2] = -p_C[:, :2] / z[:, None] ** 2
-    P /= sigma
-    A = P @ win.R_BC.T @ np.transpose(Rk, (0, 2, 1))  # d r / d q, (n, 2, 3)
-    t = win.dts[of][:, None, None]
-    J_glob = np.zeros((len(z), 2, N_GLOBAL))
-    J_glob[:, :, 0:3] = -A * t
-    J_glob[:, :, 3:5] = -(A * (0.5 * t * t)) @ G
-    skew_u = np.zeros((len(z), 3, 3))
-    up = u + win.p_BC
-    skew_u[:, 0, 1], skew_u[:, 0, 2], skew_u[:, 1, 2] = -up[:, 2], up[:, 1], -up[:, 0]
-    skew_u -= np.transpose(skew_u, (0, 2, 1))
-    d_u_d_bg = skew_u @ win.JR_bg[of] - np.transpose(Rk, (0, 2, 1)) @ win.Jp_bg[of]
-    J_glob[:, :, 5:8] = P @ win.R_BC.T @ d_u_d_bg
-    J_glob[:, :, 8:11] = -A @ win.Jp_ba[of]
-    return r, J_glob, A
-
-
-def _normal_equations(win: _Window, r, J_glob, J_feat):
-    """``J^T J`` and ``J^T r`` by blocks: ``(H_gg (G, G), H_gf (n_f, G, 3), H_ff (n_f, 3, 3), b_g, b_f)``."""
-    n_f, oj = win.n_f, win.obs_feat
-    H_gg = np.einsum("nki,nkj->ij", J_glob, J_glob)
-    b_g = np.einsum("nki,nk->i", J_glob, r)
-    H_gf = np.zeros((n_f, N_GLOBAL, 3))
-    H_ff = np.zeros((n_f, 3, 3))
-    b_f = np.zeros((n_f, 3))
-    np.add.at(H_gf, oj, np.einsum("nki,nkj->nij", J_glob, J_feat))
-    np.add.at(H_ff, oj, np.einsum("nki,nkj->nij", J_feat, J_feat))
-    np.add.at(b_f, oj, np.einsum("nki,nk->ni", J_feat, r))
-    return H_gg, H_gf, H_ff, b_g, b_f
-
-
-def _schur(H_gg, H_gf, H_ff, b_g, b_f, lam: float):
-    """Damped Schur step: ``(S (G, G) undamped-reduced, d_glob (G,), d_feat (n_f, 3))``."""
-    H_ff_d = H_ff + lam * np.einsum("nii->ni", H_ff)[:, :, None] * np.eye(3) + 1e-12 * np.eye(3)
-    H_ff_inv = np.linalg.inv(H_ff_d)
-    W = H_gf @ H_ff_inv  # (n_f, 8, 3)
-    S = H_gg - np.einsum("nij,nkj->ik", W, H_gf)
-    rhs = b_g - np.einsum("nij,nj->i", W, b_f)
-    S_d = S + lam * np.diag(np.diag(H_gg))
-    d_glob = -np.linalg.solve(S_d, rhs)
-    d_feat = -np.einsum("nij,nj->ni", H_ff_inv, b_f + np.einsum("nij,i->nj", H_gf, d_glob))
-    return S, d_glob, d_feat
-
-
-def _refine(win: _Window, R_g, z_glob, pf, sigma: float, prior: np.ndarray, max_iter: int):
-    """Levenberg-Marquardt over ``(z_glob, pf)``, a zero-mean prior of information ``diag(prior)`` on z_glob.
-
-    Returns:
-        ``(z_glob, pf, S, rms)``: ``S`` the reduced information of the reprojection errors alone at the
-        solution (units of ``sigma``), ``rms`` the reprojection RMS in normalized coordinates.
-    """
-
-    def normal_equations(r, Jg, Jf, z):
-        H_gg, H_gf, H_ff, b_g, b_f = _normal_equations(win, r, Jg, Jf)
-        return H_gg + np.diag(prior), H_gf, H_ff, b_g + prior * z, b_f
-
-    lam = 1e-3
-    r, Jg, Jf = reprojection(win, z_glob, pf, R_g, sigma)
-    cost = float(np.sum(r**2) + prior @ z_glob**2)
-    for _ in range(max_iter):
-        try:
-            _, d_glob, d_feat = _schur(*normal_equations(r, Jg, Jf, z_glob), lam)
-        except np.linalg.LinAlgError:
-            break
-        z_new, pf_new = z_glob + d_glob, pf + d_feat
-        r_new, Jg_new, Jf_new = reprojection(win, z_new, pf_new, R_g, sigma)
-        cost_new = float(np.sum(r_new**2) + prior @ z_new**2)
-        if np.isfinite(cost_new) and cost_new < cost:
-            done = cost - cost_new < 1e-6 * cost
-            z_glob, pf, r, Jg, Jf, cost = z_new, pf_new, r_new, Jg_new, Jf_new, cost_new
-            lam = max(lam / 10.0, 1e-9)
-            if done:
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e6:
-                break
+    inf = {"scale_sigma": np.inf, "length_sigma": np.inf, "speed_sigma": np.inf, "tilt_sigma_rad": np.inf}
+    v0, g, bg, ba, G = globals_of(z_glob, R_g)
+    n_k = len(win.dts)
+    pim_end = pims[-1]
+    # 7a. Reprojection Jacobians at the solution and the reduced information (noise: RMS, >= floor).
+    r, Jg, Jf, Jpose = reprojection(win, z_glob, pf, R_g, sigma, with_pose=True)
+    c2 = max(rms / sigma, 1.0) ** 2
+    H_gg, H_gf, H_ff, _, _ = normal_equations(win, r, Jg, Jf)
     try:
-        S = _schur(*_normal_equations(win, r, Jg, Jf), 0.0)[0]
+        W = H_gf @ np.linalg.inv(H_ff + 1e-12 * np.eye(3))  # (n_f, G, 3)
+        info = (H_gg - np.einsum("nij,nkj->ik", W, H_gf)) / c2 + np.diag(prior)
+        cov_g = np.linalg.inv(info)
     except np.linalg.LinAlgError:
-        S = np.zeros((N_GLOBAL, N_GLOBAL))
-    rms = float(np.sqrt(np.mean(r**2))) * sigma
-    return z_glob, pf, S, rms
+        return inf
+    # 7b. Sensitivity to the frame-pose errors [dtheta_k, dp_k]: G_eta = sum_obs (J_g - J_f W^T)^T J_pose.
+    L_red = Jg - Jf @ np.transpose(W[win.obs_feat], (0, 2, 1))  # (n_obs, 2, G)
+    G_obs = np.einsum("nki,nkj->nij", L_red, Jpose) / c2  # (n_obs, G, 6)
+    G_eta = np.zeros((N_GLOBAL, n_k + 1, 9))
+    np.add.at(G_eta[:, :, 0:3], (slice(None), win.obs_frame), np.transpose(G_obs[:, :, 0:3], (1, 0, 2)))
+    np.add.at(G_eta[:, :, 6:9], (slice(None), win.obs_frame), np.transpose(G_obs[:, :, 3:6], (1, 0, 2)))
+    # 7c. The quantities: trajectory length, end speed, end up axis (3), end velocity (3), bg, ba.
+    R_k, p_k = frame_poses(win, v0, g, bg, ba)
+    J_k = np.zeros((n_k, 3, N_GLOBAL))
+    J_k[:, :, 0:3] = win.dts[:, None, None] * np.eye(3)
+    J_k[:, :, 3:5] = 0.5 * win.dts[:, None, None] ** 2 * G
+    J_k[:, :, 5:8] = win.Jp_bg
+    J_k[:, :, 8:11] = win.Jp_ba
+    length, w_L = _trajectory_scale(p_k, J_k)
+    dR_end, dv_end, _ = pim_end.corrected(bg, ba)
+    v_end = v0 + g * pim_end.dt_s + dv_end
+    speed = float(np.linalg.norm(v_end))
+    up_end = -dR_end.T @ g / GRAVITY_M_S2
+    Jq_g = np.zeros((14, N_GLOBAL))
+    Jq_eta = np.zeros((14, n_k + 1, 9))
+    Jq_g[0] = w_L
+    dist = np.linalg.norm(p_k, axis=1)
+    Jq_eta[0, :n_k, 6:9] = np.where(dist[:, None] > 1e-9, p_k / np.maximum(dist, 1e-9)[:, None], 0.0)
+    J_v = np.zeros((3, N_GLOBAL))
+    J_v[:, 0:3] = np.eye(3)
+    J_v[:, 3:5] = pim_end.dt_s * G
+    J_v[:, 5:8] = pim_end.d_v_d_bg
+    J_v[:, 8:11] = pim_end.d_v_d_ba
+    e_v = v_end / max(speed, 1e-9)
+    Jq_g[1], Jq_eta[1, n_k, 3:6] = e_v @ J_v, e_v
+    Jq_g[2:5, 3:5] = -dR_end.T @ G / GRAVITY_M_S2
+    Jq_g[2:5, 5:8] = skew(up_end) @ pim_end.d_R_d_bg
+    Jq_eta[2:5, n_k, 0:3] = skew(up_end)
+    Jq_g[5:8], Jq_eta[5:8, n_k, 3:6] = J_v, np.eye(3)
+    Jq_g[8:14, 5:11] = np.eye(6)
+    # 7d. Covariance of the quantities: image share plus the preintegration share.
+    Jq_eta = Jq_eta.reshape(14, -1)
+    T = Jq_eta - Jq_g @ cov_g @ G_eta.reshape(N_GLOBAL, -1)
+    cov_q = Jq_g @ cov_g @ Jq_g.T + T @ imu_cov @ T.T
+    if not np.all(np.isfinite(cov_q)):
+        return inf
+    var = np.maximum(np.diag(cov_q), 0.0)
+    length_sigma = float(np.sqrt(var[0])) / length if length > 0.0 else float("inf")
+    speed_sigma = float(np.sqrt(var[1])) / speed if speed > 0.0 else float("inf")
+    tangent = np.linalg.svd(np.eye(3) - np.outer(up_end, up_end))[0][:, :2]
+    return {
+        "scale_sigma": max(length_sigma, speed_sigma),
+        "length_sigma": length_sigma,
+        "length_m": length,
+        "speed_sigma": speed_sigma,
+        "tilt_sigma_rad": _tilt_sigma_rad(tangent.T @ cov_q[2:5, 2:5] @ tangent),
+        "cov_v_B0": cov_q[5:8, 5:8],
+        "cov_bg": cov_q[8:11, 8:11],
+        "cov_ba": cov_q[11:14, 11:14],
+    }

@@ -39,7 +39,7 @@ from viotb.vio.update_helpers import (
     feature_jacobian,
     measurement_compress,
     nullspace_project,
-    observability_constrain,
+    observability_projector,
     random_walk_whitener,
     track_path_px,
 )
@@ -220,15 +220,18 @@ def msckf_update(
         H_x = (W @ H_x.reshape(F, V, 2 * n_c)).reshape(F, 2 * V, n_c)
     # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
     H_o, r_o = nullspace_project(H_x, H_f, r)
+    P_cc = st.cov[np.ix_(cols, cols)]
+    Pi = None
     if p.use_fej and p.update_linearization == "current_oc":
         # 4b. Observability constraint: no information on global position/yaw at the first estimates,
-        #     the directions the FEJ propagation keeps unobservable (Hesch et al. TRO 2014, OC-EKF).
+        #     the directions the FEJ propagation keeps unobservable (Hesch et al. TRO 2014, OC-EKF). The
+        #     constrained rows are ``H_o Pi``; steps 5 and 6 apply ``Pi`` to n_c x n_c matrices instead.
         R_fej = np.stack([c.R_WB_fej for c in clones])
         p_fej = np.stack([c.p_WB_fej for c in clones])
         U = clone_unobservable_basis(R_fej, p_fej, clone_offsets, st.dim)
-        H_o = observability_constrain(H_o, U[cols])  # U is zero off the clone blocks
+        Pi = observability_projector(U[cols])  # U is zero off the clone blocks
+        P_cc = Pi @ P_cc @ Pi
     # 5. Chi-square gate at 95 % per feature with dof = 2 m - 3 (m views over all cameras).
-    P_cc = st.cov[np.ix_(cols, cols)]
     sigma2 = (p.pixel_sigma_px / focal_px) ** 2
     HP = (H_o.reshape(-1, n_c) @ P_cc).reshape(H_o.shape)
     S = HP @ np.swapaxes(H_o, 1, 2)
@@ -251,9 +254,13 @@ def msckf_update(
     if n_pass == 0:
         return stats
     # 6. Stack, compress (QR) and update.
-    H_all = H_o[passed].reshape(-1, n_c)
-    r_all = r_o[passed].reshape(-1)
-    H_c, r_c = measurement_compress(H_all, r_all)
+    if n_pass == F:
+        H_all, r_all = H_o.reshape(-1, n_c), r_o.reshape(-1)
+    else:
+        H_all, r_all = H_o[passed].reshape(-1, n_c), r_o[passed].reshape(-1)
+    H_c, r_c = measurement_compress(H_all, r_all, Pi)
+    if len(H_c) == 0:  # no direction carries information (all-zero rows): nothing to update
+        return stats
     H_full = np.zeros((len(H_c), st.dim))
     H_full[:, cols] = H_c
     ekf_update(st, H_full, r_c, sigma2)

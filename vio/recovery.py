@@ -34,6 +34,17 @@ not reduce it). The closed loop builds the re-initialized MSCKF with :func:`cold
 (``make_reinit``): a clone per frame, so that its first update comes before the coasted velocity error
 makes its clone window inconsistent.
 
+Velocity from a map (:meth:`RecoveringEstimator.expect_velocity_fixes`, :meth:`RecoveringEstimator.
+velocity_fix`): the coast's velocity error (8-9 cm/s after 4 s dark, ``fly-lights-out``) is what a
+re-initialized monocular filter cannot correct in a hover. The motion is then near constant velocity, whose
+magnitude (the scale) camera and IMU do not observe; the new filter triangulates its fresh tracks on the
+wrong baseline and confirms the wrong velocity (measured: error 9 cm/s, sigma 1 mm/s, NIS 1, velocity NEES
+in the thousands). A loop closer that relocalizes the returning frames against the map made before the
+loss measures the coasted pose's drift at each loop, and its rate is the velocity error; given one, the
+coasted state takes it as an EKF velocity measurement (its tilt and accelerometer bias follow through the
+coasted correlations) and the hand-over, held back for it up to ``max_wait_s`` after the features are back,
+seeds the new filter with it.
+
 A non-finite or out-of-order IMU sample still raises ``ValueError`` from :meth:`feed_imu`: a failed sensor is
 not recoverable by re-initializing, and the caller stops.
 """
@@ -50,7 +61,7 @@ from viotb.vio.initialization import InitResult
 from viotb.vio.lifecycle import track_conditions
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.propagator import Propagator
-from viotb.vio.state import IMU_BLOCK, ImuValues, State, marginal_covariance
+from viotb.vio.state import IMU_BLOCK, VEL, ImuValues, State, ekf_update, marginal_covariance
 from viotb.vio.types import CameraFrame, Estimator, HealthStatus, ImuNoise, ImuSample, StateEstimate
 
 RECOVERABLE_ESTIMATORS = ("msckf", "window")
@@ -230,6 +241,9 @@ class RecoveringEstimator:
         self._back_frames = 0
         self._last_good: StateEstimate | None = None
         self._good_pending = False
+        self._fix_wait_s = 0.0  # how long a hand-over waits for a velocity fix (0: none expected)
+        self._back_since: float | None = None  # first frame of the current run of frames with features
+        self._fixed = False  # the current coast took a velocity fix
         self.events: list[RecoveryEvent] = []
 
     # ------------------------------------------------------------------ readers
@@ -323,6 +337,47 @@ class RecoveringEstimator:
         if self._mode == "tracking" and self._inner.health().initialized:
             self._lose(float(t_s), reason, False)
 
+    def expect_velocity_fixes(self, max_wait_s: float) -> None:
+        """A map will offer velocity fixes while coasting: hold a hand-over up to ``max_wait_s`` (s) for one.
+
+        Raises:
+            ValueError: ``max_wait_s`` negative or not finite.
+        """
+        if not (np.isfinite(max_wait_s) and max_wait_s >= 0.0):
+            raise ValueError(f"expect_velocity_fixes: max_wait_s must be >= 0 and finite, got {max_wait_s}")
+        self._fix_wait_s = float(max_wait_s)
+
+    @property
+    def wants_velocity_fix(self) -> bool:
+        """Coasting and no velocity fix taken yet in this coast."""
+        return self._mode == "coasting" and not self._fixed
+
+    def velocity_fix(self, dv_W_m_s: np.ndarray, cov_W_m2_s2: np.ndarray) -> bool:
+        """Correct the coasted velocity by a measured error (see the module docstring); once per coast.
+
+        Args:
+            dv_W_m_s: Measured true minus coasted velocity (m/s) in the estimator's world frame, shape (3,).
+            cov_W_m2_s2: Its covariance, shape (3, 3).
+
+        Returns:
+            Whether it was applied (only while coasting, once).
+
+        Raises:
+            ValueError: Wrong shapes or non-finite values.
+        """
+        dv, cov = np.asarray(dv_W_m_s, dtype=float), np.asarray(cov_W_m2_s2, dtype=float)
+        finite = np.all(np.isfinite(dv)) and np.all(np.isfinite(cov))
+        if dv.shape != (3,) or cov.shape != (3, 3) or not finite:
+            raise ValueError(f"velocity_fix: dv (3,) and cov (3, 3) must be finite, got {dv} and {cov}")
+        if not self.wants_velocity_fix:
+            return False
+        st = self._coaster.state
+        H = np.zeros((3, st.dim))
+        H[:, st.block(IMU_BLOCK).offset + VEL + np.arange(3)] = np.eye(3)
+        ekf_update(st, H, dv, cov)
+        self._fixed = True
+        return True
+
     # ------------------------------------------------------------------ internals
     def _fresh_candidate(self) -> Estimator:
         cand = self._make()
@@ -345,6 +400,7 @@ class RecoveringEstimator:
             return
         self._coaster = _Coaster(start, self._calib, self._noise, list(self._history))
         self._candidate = self._fresh_candidate()
+        self._fixed, self._back_since = False, None
         self._mode = "coasting"
         t0 = self._coaster.state.t_s
         self.events.append(RecoveryEvent(t_lost_s=t_s, reason=reason, t_coast_start_s=t0))
@@ -369,7 +425,15 @@ class RecoveringEstimator:
             conditions=("coasting",) + track_conditions(n),
         )
         self._back_frames = self._back_frames + 1 if n >= self.params.return_min_features else 0
-        if self._back_frames >= self.params.return_frames:
+        if self._back_frames == 1:
+            self._back_since = t_imu
+        waiting = (
+            self._fix_wait_s > 0.0
+            and not self._fixed
+            and self._back_since is not None
+            and t_imu - self._back_since < self._fix_wait_s - 1e-9
+        )
+        if self._back_frames >= self.params.return_frames and not waiting:
             seed = self._seed(t_imu)
             self._candidate.initialize(seed)
             self._hand_over(t_imu, n)

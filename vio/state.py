@@ -381,9 +381,12 @@ def set_imu_fej(state: State) -> None:
 def read_init_record(init: object) -> tuple[float, ImuValues, np.ndarray]:
     """Read an ``InitResult``-like record (t_s, R_WB, p_WB, v_WB, biases, cov_diag) with clear errors.
 
+    An optional ``sigma_yaw_rad`` (finite) sets the variance of ``dtheta`` about world z (the yaw gauge) and
+    removes that direction from the given orientation variances.
+
     Returns:
-        ``(t_s, values, cov)``: the time (s), the IMU state and the 15x15 diagonal covariance (StateEstimate
-        order ``[dtheta, dp, dv, dbg, dba]``).
+        ``(t_s, values, cov)``: the time (s), the IMU state and the 15x15 covariance (StateEstimate order
+        ``[dtheta, dp, dv, dbg, dba]``; diagonal but for the orientation block with ``sigma_yaw_rad``).
 
     Raises:
         ValueError: A missing field, a wrong shape, a non-finite value or a non-positive variance.
@@ -415,4 +418,14 @@ def read_init_record(init: object) -> tuple[float, ImuValues, np.ndarray]:
             raise ValueError(f"initialize: {name} is not finite: {arr.tolist()}")
     if np.any(cov_diag <= 0.0):
         raise ValueError(f"initialize: cov_diag must be positive, got {cov_diag.tolist()}")
-    return t_s, vals, np.diag(cov_diag)
+    cov = np.diag(cov_diag)
+    sigma_yaw = float(getattr(init, "sigma_yaw_rad", float("nan")))
+    if np.isfinite(sigma_yaw):
+        if sigma_yaw <= 0.0:
+            raise ValueError(f"initialize: sigma_yaw_rad must be > 0, got {sigma_yaw}")
+        # The body-frame error dtheta has its yaw part along u = R_WB^T z_W: project it out of the tilt
+        # variances and give it the gauge's sigma.
+        u = vals.R_WB.T @ np.array([0.0, 0.0, 1.0])
+        tilt = np.eye(3) - np.outer(u, u)
+        cov[0:3, 0:3] = tilt @ cov[0:3, 0:3] @ tilt + sigma_yaw**2 * np.outer(u, u)
+    return t_s, vals, cov

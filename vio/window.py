@@ -54,12 +54,15 @@ from viotb.vio.window_factors import (
     predict_covariance,
     preintegrate,
     reprojection,
+    repropagate,
     retract,
+    seen_behind,
 )
 from viotb.vio.window_map import (
     ImuLink,
     Keyframe,
     drop_landmark,
+    fix_first_estimates,
     landmark_candidates,
     observations,
     track_matrix,
@@ -159,6 +162,7 @@ class WindowEstimator:
         self._version = 0
         self._est_cache: tuple[int, float, StateEstimate] | None = None
         self.solve_times_s: list[float] = []
+        self.solve_iterations: list[int] = []
 
     # ---------------------------------------------------------------------------------------- protocol
     def initialize(self, init: object) -> None:
@@ -373,14 +377,8 @@ class WindowEstimator:
         t0 = time.perf_counter()
         p = self.params
         # 0. Re-integrate preintegrations whose bias moved far from its linearization point (lesson ch. 5).
-        for k, link in enumerate(self.links):
-            xi = self.keyframes[k].x
-            if (
-                np.linalg.norm(xi.gyro_bias_rad_s - link.pre.gyro_bias_rad_s) > p.repropagate_gyro_bias_rad_s
-                or np.linalg.norm(xi.accel_bias_m_s2 - link.pre.accel_bias_m_s2)
-                > p.repropagate_accel_bias_m_s2
-            ):
-                link.pre = preintegrate(*link.readings, xi, self.noise)
+        tol = (p.repropagate_gyro_bias_rad_s, p.repropagate_accel_bias_m_s2)
+        repropagate(self.links, [kf.x for kf in self.keyframes], self.noise, *tol)
         lm_ids = sorted(self.landmarks)
         pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
         obs = observations(self.keyframes, lm_ids)
@@ -389,9 +387,11 @@ class WindowEstimator:
         still = [k for k, kf in enumerate(self.keyframes) if kf.still]
         no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
         factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
-        xs, pts, sys = levenberg_marquardt(
-            xs, pts, factors, self._weights, p.max_iterations, p.initial_damping, p.relative_tolerance
-        )
+        lm = (p.max_iterations, p.initial_damping, p.relative_tolerance, p.min_cost_decrease)
+        fej = [kf.x_fej for kf in self.keyframes] if p.first_estimate_jacobians else None
+        sol = levenberg_marquardt(xs, pts, factors, self._weights, *lm, fej)
+        xs, pts, sys = sol.xs, sol.pts, sol.system
+        self.solve_iterations.append(sol.iterations)
         for kf, x in zip(self.keyframes, xs, strict=True):
             kf.x = x
         for j, fid in enumerate(lm_ids):
@@ -404,15 +404,11 @@ class WindowEstimator:
         self._used = len(lm_ids)
         # 6. Outliers and landmarks behind a camera leave the window with their observations.
         if len(lm_ids):
-            bad = sys.max_err > p.outlier_threshold
             cams = [(obs, self._R_BC, self._p_BC)]
             if self.calib_right is not None:
                 cams.append((obs1, self.calib_right.R_BC, np.asarray(self.calib_right.p_BC, dtype=float)))
-            for (kf_i, lm_i, _), R_BC, p_BC in cams:
-                R = np.stack([x.R_WB for x in xs])[kf_i]
-                P = np.stack([x.p_WB for x in xs])[kf_i]
-                _, depth, _, _ = reprojection(R, P, pts[lm_i], R_BC, p_BC)
-                bad[lm_i[depth < p.triangulation.min_depth_m]] = True
+            behind = seen_behind(xs, pts, cams, p.triangulation.min_depth_m)
+            bad = (sys.max_err > p.outlier_threshold) | behind
             for j in np.nonzero(bad)[0]:
                 drop_landmark(self.keyframes, self.landmarks, lm_ids[j])
             self._n_bad += int(np.sum(bad))
@@ -447,7 +443,9 @@ class WindowEstimator:
         # 1. Factors touching the marginalized variables: the prior, the oldest IMU link, its zero-velocity
         #    and no-motion factors, and the observations of its landmarks.
         nm = [1] if old.still and self.keyframes[1].still else []
-        sys = linearize(xs, pts, self._factors([0], [0] if old.still else [], nm, obs, obs1), self._weights)
+        f = self._factors([0], [0] if old.still else [], nm, obs, obs1)
+        xs_lin = fix_first_estimates(self.keyframes) if self.params.first_estimate_jacobians else None
+        sys = linearize(xs, pts, f, self._weights, xs_lin=xs_lin)
         # 2. Eliminate those landmarks, then the oldest keyframe.
         S, g_red, _ = schur_reduce(sys, 0.0)
         H_p, g_p, _ = schur_complement(S, g_red, np.arange(NX))

@@ -16,6 +16,8 @@ from viotb.vio.lie import exp_so3, log_so3, right_jacobian_inv_so3, right_jacobi
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise, gravity_W
+from viotb.vio.window_batch import BatchPreintegration
+from viotb.vio.window_map import ImuLink
 
 NX = 15
 """Error-state size of one keyframe ``[dtheta, dp, dv, dbg, dba]``."""
@@ -48,14 +50,30 @@ def boxminus(x: ImuValues, x0: ImuValues) -> np.ndarray:
 def preintegrate(
     t_s: np.ndarray, gyro: np.ndarray, accel: np.ndarray, x: ImuValues, noise: ImuNoise
 ) -> ImuPreintegration:
-    """Preintegrate readings ``(t (n,), gyro (n, 3), accel (n, 3))`` at the biases of ``x`` (midpoints)."""
-    pre = ImuPreintegration(x.gyro_bias_rad_s, x.accel_bias_m_s2, noise)
-    dt = np.diff(t_s)
-    g_mid = 0.5 * (gyro[1:] + gyro[:-1])
-    a_mid = 0.5 * (accel[1:] + accel[:-1])
-    for k in np.nonzero(dt > 0.0)[0]:
-        pre.integrate(a_mid[k], g_mid[k], float(dt[k]))
-    return pre
+    """Preintegrate readings ``(t (n,), gyro (n, 3), accel (n, 3))`` at the biases of ``x`` (midpoints).
+
+    All readings at once (:class:`viotb.vio.window_batch.BatchPreintegration`; the sample-by-sample
+    :meth:`ImuPreintegration.integrate` gives the same to round-off).
+    """
+    return BatchPreintegration(t_s, gyro, accel, x.gyro_bias_rad_s, x.accel_bias_m_s2, noise)
+
+
+def repropagate(
+    links: list[ImuLink], xs: list[ImuValues], noise: ImuNoise, gyro_tol_rad_s: float, accel_tol_m_s2: float
+) -> None:
+    """Re-integrate (in place) the links whose start keyframe's bias moved far from their linearization point.
+
+    Link ``k`` (from keyframe ``xs[k]``) is re-integrated when its gyro bias moved more than
+    ``gyro_tol_rad_s``
+    or its accelerometer bias more than ``accel_tol_m_s2``; otherwise the first-order correction of Forster
+    eq. 44 serves.
+    """
+    for link, xi in zip(links, xs, strict=False):
+        if (
+            np.linalg.norm(xi.gyro_bias_rad_s - link.pre.gyro_bias_rad_s) > gyro_tol_rad_s
+            or np.linalg.norm(xi.accel_bias_m_s2 - link.pre.accel_bias_m_s2) > accel_tol_m_s2
+        ):
+            link.pre = preintegrate(*link.readings, xi, noise)
 
 
 def predict(pre: ImuPreintegration, x: ImuValues) -> ImuValues:
@@ -138,6 +156,39 @@ def imu_factor(
     cov[9:12, 9:12] = np.eye(3) * noise.gyro_random_walk_rad_s2_sqrthz**2 * dt
     cov[12:15, 12:15] = np.eye(3) * noise.accel_random_walk_m_s3_sqrthz**2 * dt
     return r, J_i, J_j, cov
+
+
+def project(
+    R_WB: np.ndarray, p_WB: np.ndarray, p_W: np.ndarray, R_BC: np.ndarray, p_BC: np.ndarray
+) -> np.ndarray:
+    """Normalized projections ``z (M, 2)`` of :func:`reprojection` without the Jacobians (same arguments)."""
+    p_C = (np.einsum("mji,mj->mi", R_WB, p_W - p_WB) - p_BC) @ R_BC
+    Z = p_C[:, 2]
+    return p_C[:, :2] / np.where(np.abs(Z) < 1e-9, 1e-9, Z)[:, None]
+
+
+def seen_behind(
+    xs: list[ImuValues],
+    pts: np.ndarray,
+    cams: list[tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, np.ndarray]],
+    min_depth_m: float,
+) -> np.ndarray:
+    """Landmarks that some observation sees closer than ``min_depth_m`` (or behind the camera), (L,) bool.
+
+    Args:
+        xs: Keyframe values (N).
+        pts: Landmarks in W (m), shape (L, 3).
+        cams: Per camera ``(observations (kf index (M,), landmark index (M,), xy (M, 2)), R_BC, p_BC)``.
+        min_depth_m: Smallest depth along the optical axis (m).
+    """
+    bad = np.zeros(len(pts), dtype=bool)
+    R_WB = np.stack([x.R_WB for x in xs])
+    p_WB = np.stack([x.p_WB for x in xs])
+    for (kf_i, lm_i, _), R_BC, p_BC in cams:
+        q = np.einsum("mji,mj->mi", R_WB[kf_i], pts[lm_i] - p_WB[kf_i])
+        depth = ((q - p_BC) @ R_BC)[:, 2]
+        bad[lm_i[depth < min_depth_m]] = True
+    return bad
 
 
 def reprojection(

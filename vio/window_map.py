@@ -26,6 +26,8 @@ class Keyframe:
         obs: Feature id -> undistorted normalized coordinates in cam0, shape (2,).
         still: It carries a zero-velocity factor.
         obs_right: Feature id -> undistorted normalized coordinates in cam1 (stereo rigs), shape (2,).
+        x_fej: Its values when a marginalization prior first held it: the linearization point of its
+            Jacobians from then on (first-estimate Jacobians), or None before.
     """
 
     key: int
@@ -34,6 +36,7 @@ class Keyframe:
     obs: dict[int, np.ndarray]
     still: bool = False
     obs_right: dict[int, np.ndarray] = field(default_factory=dict)
+    x_fej: ImuValues | None = None
 
     def camera_obs(self, cam: int) -> dict[int, np.ndarray]:
         """Observations of camera ``cam`` (0: ``obs``, 1: ``obs_right``)."""
@@ -132,3 +135,15 @@ def drop_landmark(keyframes: list[Keyframe], landmarks: dict[int, np.ndarray], f
     for kf in keyframes:
         kf.obs.pop(fid, None)
         kf.obs_right.pop(fid, None)
+
+
+def fix_first_estimates(keyframes: list[Keyframe]) -> list[ImuValues]:
+    """Give every keyframe without one its current values as first estimate; return them all (in order).
+
+    Called when a marginalization prior takes the keyframes: from then on their Jacobians are evaluated
+    there (:attr:`Keyframe.x_fej`).
+    """
+    for kf in keyframes:
+        if kf.x_fej is None:
+            kf.x_fej = kf.x.copy()
+    return [kf.x_fej for kf in keyframes]

@@ -19,8 +19,8 @@ from viotb.vio.marginalization import LinearPrior
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
-from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, stack_values
-from viotb.vio.window_factors import NX, reprojection, retract
+from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, retract_batch, stack_values
+from viotb.vio.window_factors import NX, project, reprojection
 
 
 @dataclass(frozen=True)
@@ -144,14 +144,20 @@ def prepare(f: Factors, w8: FactorWeights, n_kf: int, n_lm: int) -> PreparedFact
     sums = []
     for obs in (f.obs, f.obs_right):
         kf_i, lm_i = (np.zeros(0, dtype=np.int64),) * 2 if obs is None else obs[:2]
-        M, ones, col = len(kf_i), np.ones(len(kf_i)), np.arange(len(kf_i))
-        sums.append(
-            (
-                sparse.csr_matrix((ones, (kf_i, col)), shape=(n_kf, M)),
-                sparse.csr_matrix((ones, (lm_i, col)), shape=(n_lm, M)),
-            )
-        )
+        sums.append((_summing_matrix(kf_i, n_kf), _summing_matrix(lm_i, n_lm)))
     return PreparedFactors(ImuFactorStack.build(f.imu, w8.noise), R0, rest0, sums)
+
+
+def _summing_matrix(row: np.ndarray, n_rows: int) -> sparse.csr_matrix:
+    """The 0/1 matrix (n_rows, M) with a one at ``(row[m], m)``: its product sums the M terms per row.
+
+    Built from its CSR arrays directly (a stable sort of ``row``), which is several times faster than
+    from coordinates.
+    """
+    row = np.asarray(row, dtype=np.int64)
+    order = np.argsort(row, kind="stable")
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(row, minlength=n_rows))])
+    return sparse.csr_matrix((np.ones(len(row)), order, indptr), shape=(n_rows, len(row)))
 
 
 def linearize(
@@ -160,8 +166,16 @@ def linearize(
     f: Factors,
     w8: FactorWeights,
     prep: PreparedFactors | None = None,
+    xs_lin: list[ImuValues] | None = None,
 ) -> LinearSystem:
     """Whitened Gauss-Newton system at ``(xs, pts)`` (IRLS Huber weights) and its robust cost.
+
+    With ``xs_lin`` the Jacobians of the IMU and reprojection factors are evaluated with the keyframes at
+    those values (first-estimate Jacobians, Huang, Mourikis, Roumeliotis 2008; in a fixed-lag smoother
+    Dong-Si and Mourikis, ICRA 2011: every factor on a keyframe that a marginalization prior holds uses
+    the prior's linearization point, so the prior and the factors agree on the unobservable directions,
+    global position and yaw, and the window gains no information along them); the residuals, the Huber
+    weights and the cost stay at ``xs``.
 
     Args:
         xs: Keyframe values (N).
@@ -169,6 +183,7 @@ def linearize(
         f: The factors.
         w8: Their noise models and the extrinsics.
         prep: ``prepare(f, w8)`` when the caller linearizes the same factors repeatedly (None: made here).
+        xs_lin: Keyframe values of the Jacobians (N), or None (``xs``).
     """
     N, L = len(xs), len(pts)
     prep = prep if prep is not None else prepare(f, w8, N, L)
@@ -179,18 +194,24 @@ def linearize(
     prior_cost = 0.0
     n_res = 0
     R, rest = stack_values(xs)
+    R_lin, rest_lin = (R, rest) if xs_lin is None else stack_values(xs_lin)
     # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
     if len(prep.imu.k):
-        r, J_i, J_j = imu_factors(prep.imu, R, rest)
+        r, J_i, J_j = imu_factors(prep.imu, R, rest, jacobians=xs_lin is None)
+        if xs_lin is not None:
+            _, J_i, J_j = imu_factors(prep.imu, R_lin, rest_lin)
         W = prep.imu.sqrt_info
         r_w = np.einsum("kij,kj->ki", W, r)
         J = np.concatenate([W @ J_i, W @ J_j], axis=2)
         JT = np.swapaxes(J, 1, 2)
         JtJ, Jtr = JT @ J, np.einsum("kij,kj->ki", JT, r_w)
-        for i, k in enumerate(prep.imu.k.tolist()):
-            sl = slice(k * NX, (k + 2) * NX)
-            H[sl, sl] += JtJ[i]
-            g[sl] += Jtr[i]
+        # Blocks (k, k), (k, k+1), (k+1, k), (k+1, k+1) of H seen as (N, NX, N, NX); within each of the
+        # four, the factors' keyframes differ, so fancy-indexed += adds every factor.
+        k_i, H4, g2 = prep.imu.k, H.reshape(N, NX, N, NX), g.reshape(N, NX)
+        for a in (0, 1):
+            g2[k_i + a] += Jtr[:, a * NX : (a + 1) * NX]
+            for b in (0, 1):
+                H4[k_i + a, :, k_i + b, :] += JtJ[:, a * NX : (a + 1) * NX, b * NX : (b + 1) * NX]
         cost += 0.5 * float(np.sum(r_w * r_w))
         n_res += NX * len(prep.imu.k)
     # b. Linear prior (OKVIS eq. 9): 0.5 dx^T H dx + g^T dx at dx = x [-] x0.
@@ -233,8 +254,9 @@ def linearize(
     if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
         cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1, prep.sums[1]))
     for obs, R_BC, p_BC, sigma_norm, sums in cams:
+        poses = (R, rest[:, :3], R_lin, rest_lin[:, :3])
         c, n = _add_reprojection(
-            H, g, H_ll, g_l, E, max_err, (R, rest[:, :3]), pts, obs, R_BC, p_BC, sigma_norm, w8, sums
+            H, g, H_ll, g_l, E, max_err, poses, pts, obs, R_BC, p_BC, sigma_norm, w8, sums
         )
         cost += c
         n_res += n
@@ -248,7 +270,7 @@ def _add_reprojection(
     g_l: np.ndarray,
     E: np.ndarray,
     max_err: np.ndarray,
-    poses: tuple[np.ndarray, np.ndarray],
+    poses: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     pts: np.ndarray,
     obs: tuple[np.ndarray, np.ndarray, np.ndarray],
     R_BC: np.ndarray,
@@ -266,7 +288,7 @@ def _add_reprojection(
         g_l: Landmark gradients (L, 3).
         E: Pose-landmark blocks (L, N, 6, 3).
         max_err: Largest whitened error per landmark (L,), raised in place.
-        poses: Keyframe ``(R_WB (N, 3, 3), p_WB (N, 3))``.
+        poses: Keyframe ``(R_WB (N, 3, 3), p_WB (N, 3))`` of the residuals, then of the Jacobians.
         pts: Landmarks in W (m), shape (L, 3).
         obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` in this camera (one observation per
             keyframe and landmark).
@@ -283,29 +305,34 @@ def _add_reprojection(
     kf_i, lm_i, xy = obs
     if not len(kf_i):
         return 0.0, 0
-    z, _, J_pose, J_pt = reprojection(poses[0][kf_i], poses[1][kf_i], pts[lm_i], R_BC, p_BC)
+    if poses[2] is poses[0]:
+        z, _, J_pose, J_pt = reprojection(poses[0][kf_i], poses[1][kf_i], pts[lm_i], R_BC, p_BC)
+    else:  # first-estimate Jacobians, residuals at the current values
+        _, _, J_pose, J_pt = reprojection(poses[2][kf_i], poses[3][kf_i], pts[lm_i], R_BC, p_BC)
+        z = project(poses[0][kf_i], poses[1][kf_i], pts[lm_i], R_BC, p_BC)
     s = 1.0 / sigma_norm
     r = (z - xy) * s
-    J_pose, J_pt = J_pose * s, J_pt * s
     e = np.linalg.norm(r, axis=1)
     k_h = w8.huber_threshold
     w = np.where(e <= k_h, 1.0, k_h / np.maximum(e, 1e-12))
     cost = float(0.5 * np.sum(np.where(e <= k_h, e * e, 2.0 * k_h * e - k_h * k_h)))
     np.maximum.at(max_err, lm_i, e)
-    Jw = J_pose * w[:, None, None]
-    JwT = np.swapaxes(Jw, 1, 2)
-    # Sums over the observations of each keyframe and each landmark (sparse products: faster than
-    # ``np.add.at``); the pose blocks sit on the diagonal of H seen as (N, NX, N, NX).
+    # One product gives every block: with J = [J_pose, J_pt, r] / sigma (M, 2, 10), w J^T J holds the
+    # pose-pose (6x6), pose-point (E), point-point and both gradients. Sums over the observations of each
+    # keyframe and each landmark are sparse products (faster than ``np.add.at``); the pose blocks sit on
+    # the diagonal of H seen as (N, NX, N, NX).
+    J = np.concatenate([J_pose * s, J_pt * s, r[:, :, None]], axis=2)
+    A = (np.swapaxes(J, 1, 2) * w[:, None, None]) @ J
     M = len(kf_i)
     sum_k, sum_l = sums
+    per_kf = (sum_k @ A.reshape(M, 100)).reshape(N, 10, 10)
+    per_lm = (sum_l @ A.reshape(M, 100)).reshape(-1, 10, 10)
     k_all = np.arange(N)
-    H4 = H.reshape(N, NX, N, NX)
-    H4[k_all, :6, k_all, :6] += (sum_k @ (JwT @ J_pose).reshape(M, 36)).reshape(N, 6, 6)
-    g.reshape(N, NX)[:, :6] += sum_k @ (JwT @ r[:, :, None])[:, :, 0]
-    JptT = np.swapaxes(J_pt * w[:, None, None], 1, 2)
-    H_ll += (sum_l @ (JptT @ J_pt).reshape(M, 9)).reshape(-1, 3, 3)
-    g_l += sum_l @ (JptT @ r[:, :, None])[:, :, 0]
-    E[lm_i, kf_i] += JwT @ J_pt
+    H.reshape(N, NX, N, NX)[k_all, :6, k_all, :6] += per_kf[:, :6, :6]
+    g.reshape(N, NX)[:, :6] += per_kf[:, :6, 9]
+    H_ll += per_lm[:, 6:9, 6:9]
+    g_l += per_lm[:, 6:9, 9]
+    E[lm_i, kf_i] += A[:, :6, 6:9]
     return cost, 2 * len(kf_i)
 
 
@@ -330,6 +357,47 @@ def schur_reduce(sys: LinearSystem, lam: float) -> tuple[np.ndarray, np.ndarray,
     return S, g, H_ll_inv
 
 
+@dataclass(frozen=True)
+class SolveResult:
+    """Outcome of :func:`levenberg_marquardt`.
+
+    Attributes:
+        xs: Optimized keyframe values (N).
+        pts: Optimized landmarks in W (m), shape (L, 3).
+        system: The system linearized at ``(xs, pts)``.
+        iterations: Trial steps taken (each linearized at its trial point; the budget's unit).
+        converged: A stopping rule fired (small predicted or actual decrease) before the budget ran out.
+        damping: The damping the next step would use: a solve continued later (a warm start) starts from it,
+            so a rejected last step is not retried as it was.
+    """
+
+    xs: list[ImuValues]
+    pts: np.ndarray
+    system: LinearSystem
+    iterations: int
+    converged: bool
+    damping: float
+
+
+def predicted_decrease(sys: LinearSystem, lam: float, dx: np.ndarray, dl: np.ndarray) -> float:
+    """Decrease of the Gauss-Newton model ``-g^T h - 1/2 h^T H h`` for the damped step ``h = (dx, dl)``.
+
+    With ``(H + lam D) h = -g`` (``D`` the diagonal of H) it is ``1/2 (lam h^T D h - g^T h)`` (Madsen,
+    Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004, eq. 3.14), which needs no
+    product with H.
+
+    Args:
+        sys: The system the step was solved from.
+        lam: The damping of the step (relative to the diagonal).
+        dx: Keyframe step, shape (N NX,).
+        dl: Landmark step, shape (L, 3).
+    """
+    d_pose = np.diag(sys.H)
+    d_lm = np.einsum("lii->li", sys.H_ll)
+    damped = float(d_pose @ (dx * dx) + np.sum(d_lm * dl * dl))
+    return 0.5 * (lam * damped - float(sys.g @ dx) - float(np.sum(sys.g_l * dl)))
+
+
 def levenberg_marquardt(
     xs: list[ImuValues],
     pts: np.ndarray,
@@ -338,45 +406,68 @@ def levenberg_marquardt(
     max_iterations: int,
     initial_damping: float,
     relative_tolerance: float = 1e-6,
-) -> tuple[list[ImuValues], np.ndarray, LinearSystem]:
+    min_decrease: float = 0.0,
+    fej: list[ImuValues | None] | None = None,
+) -> SolveResult:
     """Levenberg-Marquardt on the manifold, landmarks eliminated by the Schur complement in each solve.
 
     A step is kept when it does not raise the cost (damping / 10, at least 1e-8), else the damping grows
-    10x; iterations stop early when a kept step lowers the cost by less than ``relative_tolerance`` of it.
+    10x. Each trial step costs one linearization at the trial point; ``max_iterations`` bounds them, a
+    deterministic budget: the same problem always stops at the same step, and
+    a solve cut short continues from its values at the next keyframe (they are the next solve's start).
+    The iterations stop early when the model's predicted decrease of the next step is below
+    ``min_decrease`` (before linearizing there: the step is not taken), or when a kept step lowered the cost
+    by less than ``relative_tolerance`` of it.
 
     Args:
         xs: Initial keyframe values (N).
         pts: Initial landmarks in W (m), shape (L, 3).
         f: The factors.
         w8: Their noise models and the extrinsics.
-        max_iterations: Most iterations.
+        max_iterations: Most trial steps (>= 0; 0 only linearizes at the initial values).
         initial_damping: Initial damping, relative to the diagonal.
         relative_tolerance: Convergence: a kept step that lowers the cost by less than this fraction.
+        min_decrease: Convergence: a step whose predicted decrease of the cost (``0.5 chi^2`` units) is below
+            this is not taken.
+        fej: Per keyframe, the values of its first-estimate Jacobians (:func:`linearize`), or None where
+            it has none (its Jacobians follow the iterations); None: no first estimates.
 
     Returns:
-        ``(xs, pts, system)``: the optimized values and the system linearized there.
+        The optimized values and the system linearized there (:class:`SolveResult`).
     """
+    if max_iterations < 0:
+        raise ValueError(f"levenberg_marquardt: max_iterations must be >= 0, got {max_iterations}")
     prep = prepare(f, w8, len(xs), len(pts))
-    sys = linearize(xs, pts, f, w8, prep)
+
+    def lin(xs_at: list[ImuValues]) -> list[ImuValues] | None:
+        return (
+            None if fej is None else [x if x_fe is None else x_fe for x, x_fe in zip(xs_at, fej, strict=True)]
+        )
+
+    sys = linearize(xs, pts, f, w8, prep, lin(xs))
     lam = initial_damping
     pidx = pose_index(len(xs))
-    for _ in range(max_iterations):
+    n_it = 0
+    while n_it < max_iterations:
         S, g_red, H_ll_inv = schur_reduce(sys, lam)
         dx = np.linalg.solve(S, -g_red)
         rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
         dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
-        xs_new = [retract(x, dx[k * NX : (k + 1) * NX]) for k, x in enumerate(xs)]
+        if predicted_decrease(sys, lam, dx, dl) < min_decrease:
+            return SolveResult(xs, pts, sys, n_it, True, lam)
+        xs_new = retract_batch(xs, dx)
         pts_new = pts + dl
-        sys_new = linearize(xs_new, pts_new, f, w8, prep)
+        sys_new = linearize(xs_new, pts_new, f, w8, prep, lin(xs_new))
+        n_it += 1
         if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
             small = sys.cost - sys_new.cost < relative_tolerance * sys.cost
             xs, pts, sys = xs_new, pts_new, sys_new
             lam = max(lam / 10.0, 1e-8)
             if small:
-                break
+                return SolveResult(xs, pts, sys, n_it, True, lam)
         else:
             lam *= 10.0
-    return xs, pts, sys
+    return SolveResult(xs, pts, sys, n_it, False, lam)
 
 
 def newest_keyframe_covariance(sys: LinearSystem) -> np.ndarray:

@@ -62,7 +62,7 @@ def fly(
     online_calibration: bool | None = None,
     severity: float | None = None,
     edit_rig: Callable[[RigConfig], RigConfig] | None = None,
-    loop_closure: bool | LoopOptions = False,
+    loop_closure: bool | LoopOptions | None = None,
     recovery: bool = True,
 ) -> tuple[dict, FlightLog]:
     """Fly a closed-loop scenario.
@@ -81,8 +81,10 @@ def fly(
         severity: For a ``fly-fail-*`` scenario with a knob, its severity
             (``viotb.envs.scenarios.failures.failure_fly_scenario``); None = the registered default.
         edit_rig: Applied last to the run's rig (estimator settings, sensors, wind...; sweeps use it).
-        loop_closure: Loop closure beside the filter (True: default options); the controller then flies on
-            the corrected pose (``viotb.envs.run.loop_glue.FlightLoopClosure``). Needs the ``klt`` front end.
+        loop_closure: Loop closure beside the filter (True: default options, keyframes from the excitation
+            manoeuvre on where the scenario flies with loop closure by default); the controller then flies on
+            the corrected pose (``viotb.envs.run.loop_glue.FlightLoopClosure``). None: the scenario's default
+            (``FlyScenario.loop_closure``). With the ``sim`` front end the camera is rendered for the closer.
         recovery: Coast through a loss of tracking and re-initialize in the air (``RigConfig.recovery``)
             instead of stopping the flight on divergence; ``edit_rig`` may still turn it off.
 
@@ -105,11 +107,19 @@ def fly(
         rig = replace(rig, online_calibration=bool(online_calibration))
     if edit_rig is not None:
         rig = edit_rig(rig)
-    lc_opts = LoopOptions() if loop_closure is True else (loop_closure or None)
+    if loop_closure is None:
+        loop_closure = sc.loop_closure
+    lc_opts = LoopOptions(from_excitation=sc.loop_closure) if loop_closure is True else (loop_closure or None)
+    if lc_opts is not None and frontend == "sim":
+        rig = replace(rig, render_images=True)  # the estimator on simulated features, the closer on images
     if lc_opts is not None:
-        require_images(frontend)
+        require_images(frontend, rig.render_images)
     loop = ClosedLoopSim(rig, seed=seed)
-    lc = None if lc_opts is None else FlightLoopClosure(lc_opts, loop.calib_given, frontend)
+    lc = None
+    if lc_opts is not None:
+        lc = FlightLoopClosure(lc_opts, loop.calib_given, frontend, rig.render_images)
+        if isinstance(loop.estimator, RecoveringEstimator) and lc_opts.velocity_fix_wait_s > 0.0:
+            loop.estimator.expect_velocity_fixes(lc_opts.velocity_fix_wait_s)
     controller = SE3Controller(vehicle_params_from_model(loop.sim.model), gains or SE3Gains())
     log = FlightLog()
     ctrl_dt = 1.0 / CONTROL_RATE_HZ
@@ -162,10 +172,14 @@ def fly(
                 else:
                     diverged, reason = True, f"health monitor: {cond.evidence}"
             log.append_frame(loop.t_s, h.tracked_features, h.conditions)
-            if lc is not None and loop.last_frame is not None and seq.phase == "mission":
-                # From the mission on: keyframes of the climb carry the filter's unconverged scale.
+            if lc is not None and loop.last_frame is not None and _loop_phase(lc, seq):
                 frame_image = loop.last_frame.image
                 lc.on_frame(loop.t_s, frame_image, loop.estimate(), h.tracked_features, loop.truth())
+                rec = loop.estimator
+                if isinstance(rec, RecoveringEstimator) and rec.wants_velocity_fix:
+                    fix = lc.drift_velocity()  # the relocalized coast's drift rate (vio.recovery)
+                    if fix is not None:
+                        rec.velocity_fix(*fix)
         if on_tick is not None:
             on_tick(loop, log)
         if progress is not None:
@@ -214,6 +228,15 @@ def fly(
     if lc is not None:
         metrics.update(lc.finish())
     return metrics, log
+
+
+def _loop_phase(lc: FlightLoopClosure, seq: TakeoffSequence) -> bool:
+    """Whether the closer gets frames now.
+
+    From the mission on (keyframes of the climb carry the filter's unconverged scale), or from the excitation
+    manoeuvre on with ``LoopOptions.from_excitation``.
+    """
+    return seq.phase == "mission" or (lc.opts.from_excitation and seq.phase == "excite")
 
 
 def _null_notes(

@@ -36,6 +36,8 @@ class InitCheck:
         tilt_error_deg: Gravity-direction error (deg).
         speed_m_s: True speed at ``t_init_s`` (m/s).
         scale_sigma: The initializer's own relative scale sigma (NaN for static).
+        dynamic_tries: Dynamic solves the initializer ran (refused ones included).
+        cpu_per_try_s: Their mean CPU time (s; NaN without a try).
     """
 
     t_first_frame_s: float
@@ -47,6 +49,8 @@ class InitCheck:
     tilt_error_deg: float
     speed_m_s: float
     scale_sigma: float
+    dynamic_tries: int = 0
+    cpu_per_try_s: float = float("nan")
 
     def as_dict(self) -> dict:
         """JSON-able fields."""
@@ -78,6 +82,12 @@ def check_initialization(stream: Stream, estimator: str = "msckf", max_delay_s: 
         max_delay_s: Give up this long after the first image (s).
     """
     est = _make(stream, estimator)
+    initializer = est.initializer
+
+    def tries() -> dict:
+        n = initializer.dynamic_tries
+        return {"dynamic_tries": n, "cpu_per_try_s": initializer.dynamic_cpu_s / n if n else float("nan")}
+
     imu, off = stream.imu, stream.time_offset_s
     t_first = stream.frames[0].t_s + off
     i = 0
@@ -109,9 +119,10 @@ def check_initialization(stream: Stream, estimator: str = "msckf", max_delay_s: 
             tilt_error_deg=float(np.rad2deg(np.arccos(np.clip(up_est @ up_true, -1.0, 1.0)))),
             speed_m_s=speed,
             scale_sigma=float(init.scale_sigma) if init is not None else float("nan"),
+            **tries(),
         )
     nan = float("nan")
-    return InitCheck(float(t_first), None, float("inf"), "", nan, nan, nan, nan, nan)
+    return InitCheck(float(t_first), None, float("inf"), "", nan, nan, nan, nan, nan, **tries())
 
 
 MOVING_STARTS = (("circle", 3.0), ("figure8", 3.0), ("hover", 3.0), ("aggressive", 4.0), ("head-walk", 3.0))
@@ -125,6 +136,7 @@ def moving_start_monte_carlo(
     estimator: str = "msckf",
     seconds: float = 8.0,
     landmark_count: int = 600,
+    max_delay_s: float = 5.0,
 ) -> list[dict]:
     """:func:`check_initialization` per seed and moving start; rows ``{motion, start_at_s, seed, ...}``.
 
@@ -134,12 +146,13 @@ def moving_start_monte_carlo(
         estimator: ``"msckf"`` or ``"window"``.
         seconds: Motion duration of each stream (s; the motion is built for it, then entered).
         landmark_count: Scene landmarks.
+        max_delay_s: Give up this long after the first image (s).
     """
     rows = []
     for motion, start_at_s in starts:
         base = StreamConfig(motion=motion, seconds=seconds, landmark_count=landmark_count)
         for seed in seeds:
             cfg = replace(base, start_at_s=start_at_s)
-            check = check_initialization(synthesize_stream(cfg, seed), estimator)
+            check = check_initialization(synthesize_stream(cfg, seed), estimator, max_delay_s)
             rows.append({"motion": motion, "start_at_s": start_at_s, "seed": seed, **check.as_dict()})
     return rows

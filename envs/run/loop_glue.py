@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 from viotb.envs.data.euroc import EurocDataset, load_image
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.lie import rotmat_to_quat_wxyz
+from viotb.vio.lie import rotmat_to_quat_wxyz, rotz
 from viotb.vio.loop import LoopCloser, LoopClosure, LoopClosureParams
+from viotb.vio.loop.frames import heading_rad
 from viotb.vio.metrics import evaluate_trajectory
 from viotb.vio.types import StateEstimate, TrajectoryArrays
 
@@ -34,11 +35,22 @@ class LoopOptions:
         params: Loop closer parameters.
         map_in: Start in the frame of this saved map (``LoopCloser.load_map``), or None.
         map_out: Save the map here at the end, or None.
+        from_excitation: In flight, keyframes from the excitation manoeuvre after the takeoff on, not only
+            from the mission on. A hover makes no baseline: the keyframes at the hold point get their
+            landmarks only by triangulation against the manoeuvre's, and without landmarks no place can be
+            verified (``fly-lights-out`` from the mission on: 7 keyframes, 0 closures). The climb is left
+            out: its poses carry the filter's not yet converged scale (measured: two of its keyframes put
+            the same place 10 cm apart, and relocalizations against them missed the hold point by 8-18 cm).
+        velocity_fix_wait_s: In flight, how long after the features return a re-initialization
+            (``vio.recovery``) waits for the relocalized drift rate (``FlightLoopClosure.drift_velocity``)
+            to correct the coasted velocity (s); 0: it does not wait.
     """
 
     params: LoopClosureParams = field(default_factory=LoopClosureParams)
     map_in: Path | None = None
     map_out: Path | None = None
+    from_excitation: bool = False
+    velocity_fix_wait_s: float = 1.0
 
 
 @dataclass
@@ -233,13 +245,18 @@ def loop_options(
     return LoopOptions(map_in=map_in, map_out=map_out)
 
 
-def require_images(frontend: str) -> None:
+def require_images(frontend: str, render_images: bool = False) -> None:
     """Loop closure works on camera images (ORB features).
 
+    Args:
+        frontend: The estimator's front end.
+        render_images: Whether the run renders images anyway (a ``sim`` flight with loop closure does: the
+            estimator on the simulated features, the closer on the rendered images).
+
     Raises:
-        ValueError: ``frontend`` is not ``"klt"`` (the ``sim`` front end renders no images).
+        ValueError: ``frontend`` is not ``"klt"`` and no image is rendered.
     """
-    if frontend != "klt":
+    if frontend != "klt" and not render_images:
         raise ValueError(
             f"loop closure needs camera images: the {frontend!r} front end has none; use --frontend klt"
         )
@@ -250,20 +267,26 @@ class FlightLoopClosure:
 
     The filter's own state is never touched: each delivered frame goes to the closer with the filter's
     estimate, and ``correct`` maps the estimate the controller is about to use into the map frame with the
-    correction in force (blended over ``blend_duration_s``, so no jump reaches the controller).
+    correction in force (blended over ``blend_duration_s``, so no jump reaches the controller). A frame
+    with no tracked feature after frames with some tells the closer that tracking was lost and is not
+    added (a dark or blank frame has nothing to recognize): the first frame with features again is the new
+    sequence's first keyframe, the query of the relocalization.
 
     Args:
         opts: Loop settings.
         calib: The camera calibration the estimator is told.
         frontend: The run's front end; loop closure needs images.
+        render_images: Whether images are rendered whatever the front end (``RigConfig.render_images``).
 
     Raises:
-        ValueError: ``frontend == "sim"`` (it renders no images).
+        ValueError: ``frontend == "sim"`` without rendered images.
     """
 
-    def __init__(self, opts: LoopOptions, calib: CameraCalibration, frontend: str) -> None:
+    def __init__(
+        self, opts: LoopOptions, calib: CameraCalibration, frontend: str, render_images: bool = False
+    ) -> None:
         """A closer, loaded from ``opts.map_in`` when given."""
-        require_images(frontend)
+        require_images(frontend, render_images)
         self.opts, self.calib = opts, calib
         self.closer = LoopCloser(opts.params)
         if opts.map_in is not None:
@@ -272,6 +295,7 @@ class FlightLoopClosure:
         self.online: list[StateEstimate] = []
         self.truth: list[StateEstimate] = []
         self._had_tracks = False
+        self._sequence_lost: int | None = None  # the sequence in which tracking was last lost
 
     def on_frame(
         self,
@@ -289,12 +313,68 @@ class FlightLoopClosure:
             return
         if tracked == 0 and self._had_tracks:
             self.closer.notify_tracking_lost()
+            self._sequence_lost = self.closer.sequence
         self._had_tracks = tracked > 0
+        if tracked == 0:
+            return
         self.closer.add_frame(t_s, image_u8, est.R_WB, est.p_WB, self.calib)
         self.odometry.append(replace(est, t_s=t_s))
         self.online.append(self.correct(t_s, self.odometry[-1]))
         if truth is not None:
             self.truth.append(replace(truth, t_s=t_s))
+
+    def drift_velocity(
+        self, min_loops: int = 6, min_span_s: float = 0.6, sigma_m: float = 0.01
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The odometry's velocity error, from how its drift changes between loops of the current sequence.
+
+        Each verified loop of the current sequence (``LoopCloser.verified_corrections``, accepted or not:
+        a coasted pose drifts too fast for the drift bound) implies a correction ``T_map_odom`` (yaw
+        ``psi_k``, translation ``t_k``) that puts the query's odometry position ``o_k`` where PnP puts it in
+        the map, ``q_k = R(psi_k) o_k + t_k``. With the mean yaw ``psi``, ``d_k = q_k - R(psi) o_k`` is the
+        drift at time ``t_k``. Its rate is fitted by least squares as one slope with an offset per matched
+        keyframe (two map keyframes may disagree by centimetres: measured 10 cm between two of the climb,
+        which a common line would read as velocity), once more without the loops more than 3 sigma off;
+        it is the odometry's velocity error in the map frame, and the true velocity in the odometry frame
+        is ``v_odom + R(psi)^T d'``.
+
+        Args:
+            min_loops: Fewest loops of the sequence (after the outliers are dropped).
+            min_span_s: Shortest time they must span (s).
+            sigma_m: Position noise of one loop (m) (closures against the truth: median 1 cm); the larger of
+                it and the fit's residual sigma sets the covariance.
+
+        Returns:
+            ``(dv_odom (3,) m/s, cov (3, 3) m^2/s^2)`` to add to the odometry velocity, or None (too few
+            loops, too short a span, or tracking lost and its next sequence not started).
+        """
+        closer = self.closer
+        if closer.sequence == self._sequence_lost:
+            return None  # lost, and no frame since: the sequence that follows has not started
+        rows = [r for r in closer.verified_corrections if r[1] == closer.sequence]
+        if len(rows) < min_loops:
+            return None
+        psi = [heading_rad(r[4].R) for r in rows]  # a 4-DOF correction: a rotation about the vertical
+        R = rotz(float(np.arctan2(np.mean(np.sin(psi)), np.mean(np.cos(psi)))))
+        t = np.array([r[0] for r in rows])
+        match = np.array([r[2] for r in rows])
+        d = np.array([r[4].R @ r[3] + r[4].p - R @ r[3] for r in rows])
+        keep = np.ones(len(t), dtype=bool)
+        for _ in range(2):
+            groups = np.unique(match[keep])
+            # The slope needs loops at two times or more against the same keyframe.
+            if keep.sum() < min_loops or keep.sum() - len(groups) < 2 or np.ptp(t[keep]) < min_span_s:
+                return None
+            t0 = float(t[keep].mean())
+            A = np.column_stack([match == g for g in groups] + [t - t0]).astype(float)
+            coef, *_ = np.linalg.lstsq(A[keep], d[keep], rcond=None)
+            resid = np.linalg.norm(d - A @ coef, axis=1)
+            resid[~np.isin(match, groups)] = np.inf
+            dof = max(int(keep.sum()) - len(groups) - 1, 1)
+            sigma = max(sigma_m, float(np.sqrt(np.sum(resid[keep] ** 2) / (3 * dof))))
+            cov_slope = sigma**2 * np.linalg.inv(A[keep].T @ A[keep])[-1, -1]
+            keep = resid <= 3.0 * sigma * np.sqrt(3.0)
+        return R.T @ coef[-1], np.eye(3) * cov_slope
 
     def correct(self, t_s: float, est: StateEstimate | None) -> StateEstimate | None:
         """The estimate in the map frame (attitude, position and velocity) with the correction in force."""

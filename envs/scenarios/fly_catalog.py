@@ -27,6 +27,7 @@ def fly_scenarios() -> dict[str, FlyScenario]:
             "hover with the room lights off for 4 s at t = 13 s (coast on the IMU, re-initialize in the air)",
             rig=RigConfig(lights_off_intervals_s=((13.0, 17.0),)),
             default_seconds=22.0,
+            loop_closure=True,  # relocalizes at the hold point when the light returns (vio.recovery)
         ),
         FlyScenario(
             "fly-imu-failure",

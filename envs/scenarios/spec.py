@@ -106,6 +106,9 @@ class FlyScenario:
             heading at a constant 0.8 m/s, then hover) or ``"loops"`` (three laps of the waypoint square).
         default_seconds: Default flight duration (s), ground phase included.
         takeoff_altitude_m: Climb above the start (m).
+        loop_closure: Flown with loop closure unless the run says otherwise (``viotb fly
+            --no-loop-closure``), its keyframes from the excitation manoeuvre on
+            (``LoopOptions.from_excitation``).
     """
 
     name: str
@@ -114,6 +117,7 @@ class FlyScenario:
     mission: str = "hover"
     default_seconds: float = 20.0
     takeoff_altitude_m: float = 1.0
+    loop_closure: bool = False
 
 
 def listing(sc: FlyScenario) -> Scenario:

@@ -37,8 +37,11 @@ def fly(
         False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (MSCKF)."
     ),
     severity: float | None = typer.Option(None, "--severity", help="Severity of a fly-fail-* scenario."),
-    loop_closure: bool = typer.Option(
-        False, "--loop-closure", help="Loop closure; the controller gets the corrected pose (needs klt)."
+    loop_closure: bool | None = typer.Option(
+        None,
+        "--loop-closure/--no-loop-closure",
+        help="Loop closure; the controller gets the corrected pose (default: the scenario's, off but for "
+        "fly-lights-out; with --frontend sim the camera is rendered for it).",
     ),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),

@@ -17,6 +17,10 @@ its frame) until two keyframes are verified against localized ones and agree; th
 sequence is the 4-DOF transform that puts the query where PnP says, the sequence joins the graph and the
 graph is solved. A run started with ``load_map`` is such a sequence: it localizes into the map's frame at its
 first recognized place (snapping, since its odometry frame was arbitrary), with the map's keyframes fixed.
+After a tracking loss, keyframes come every ``relocalization_keyframe_interval_s`` whatever the motion, until
+the sequence relocalizes and for ``relocalization_dense_s`` after: a hovering drone that lost its features
+(lights out) gets its query keyframe and its confirmation within half a second of the light returning, and
+the closures that follow correct the drift of its re-initialized filter while it converges.
 """
 
 from __future__ import annotations
@@ -81,6 +85,14 @@ class LoopCloser:
         self._loaded_map = False
         self._n_loaded_closures = 0
         self.heading_axis_B: np.ndarray | None = None  # set at the first keyframe or by load_map
+        self.verified_corrections: list[tuple[float, int, int, np.ndarray, RigidTransform]] = []
+        """Per verified loop in order (before the drift bound and the confirmation): query time (s), its
+        sequence, the match keyframe's index, the query's odometry position (m, (3,)) and the 4-DOF
+        ``T_map_odom`` the loop alone implies
+        (``Candidate.correction``): how the drift of a sequence changes between its loops
+        (``FlightLoopClosure.drift_velocity``)."""
+        self._dense_sequence: int | None = None  # the sequence started by the latest tracking loss
+        self._dense_until_s = np.inf  # its dense keyframes end then (set at its relocalization)
 
     def _yaw(self, R_WB: np.ndarray) -> float:
         return heading_rad(R_WB, self.heading_axis_B)
@@ -137,14 +149,23 @@ class LoopCloser:
         if self._lost or gap:
             self._start_sequence(t_s)
         self._last_t_s = float(t_s)
-        if not self.db.is_keyframe(t_s, R_WB, p_WB, self.sequence):
+        if not (self.db.is_keyframe(t_s, R_WB, p_WB, self.sequence) or self._dense_keyframe(t_s)):
             self.timings.append(FrameTiming(t_s, (time.perf_counter() - t0) * 1e3))
             return None
         if self.heading_axis_B is None:
             self.heading_axis_B = horizontal_axis_B(R_WB)
-        uv, desc, landmarks_B = self.db.extract(image_u8, R_WB, p_WB, points_W, points_uv_px)
+        uv, desc, landmarks_B, octaves = self.db.extract(image_u8, R_WB, p_WB, points_W, points_uv_px)
         kf = Keyframe(
-            len(self.db), float(t_s), self.sequence, R_WB.copy(), p_WB.copy(), uv, desc, landmarks_B
+            len(self.db),
+            float(t_s),
+            self.sequence,
+            R_WB.copy(),
+            p_WB.copy(),
+            uv,
+            desc,
+            landmarks_B,
+            octaves=octaves,
+            landmark_sigma_m_per_px=np.where(np.isfinite(landmarks_B[:, 0]), 0.0, np.inf),
         )
         recent = self.db.recent_of_sequence(self.sequence, self.params.keyframes.triangulation_keyframes)
         for older in recent:
@@ -167,10 +188,19 @@ class LoopCloser:
         )
         return closure
 
+    def _dense_keyframe(self, t_s: float) -> bool:
+        """Whether a frame is a keyframe by the dense rule after a tracking loss (module docstring)."""
+        if self.sequence != self._dense_sequence or t_s > self._dense_until_s:
+            return False
+        last = self.db.last_of_sequence(self.sequence)
+        interval = self.params.relocalization_keyframe_interval_s
+        return last is None or t_s - last.t_s >= interval - 0.01  # 10 ms: frames arrive on control ticks
+
     def _start_sequence(self, t_s: float) -> None:
         # The correction in force stays the best guess until the new sequence relocalizes (an estimator that
         # coasts through a blackout keeps its frame).
         self.sequence = max([kf.sequence for kf in self.db.keyframes] + [self.sequence]) + 1
+        self._dense_sequence, self._dense_until_s = self.sequence, np.inf
         self._lost = False
         self._path_m = self._path_at_anchor_m = 0.0
         self.gate.pending = None
@@ -187,9 +217,13 @@ class LoopCloser:
                 calib,
                 self.params.keyframes,
                 self.params.verification,
+                kf.octaves,
             )
             if verdict.pose is None:
                 continue
+            if match.R_WB_map is not None:
+                T = make_candidate(kf, match, verdict.pose, self.heading_axis_B).correction
+                self.verified_corrections.append((kf.t_s, kf.sequence, match.index, kf.p_WB_odom, T))
             # An ill-conditioned pose is refused where the sequence has other loops to come (a relocalization
             # has none yet and relies on the confirmation).
             if self.localized and verdict.pose.yaw_sigma_deg > self.params.verification.max_yaw_sigma_deg:
@@ -215,12 +249,16 @@ class LoopCloser:
                 old.tf = self.bow.transform(old.descriptors)
                 self.bow.add(old.tf)
         kf.tf = self.bow.transform(kf.descriptors)
+        # A keyframe with fewer landmarks than PnP needs inliers cannot be verified: it is no candidate (in a
+        # hover the keyframes have no baseline and none, and would crowd out those of the climb that have).
+        min_landmarks = self.params.verification.min_inliers
         rows = np.array(
             [
                 k.index
                 for k in self.db.keyframes
                 if k.sequence in self._localized
                 and (k.sequence != kf.sequence or kf.t_s - k.t_s >= rp.min_time_gap_s)
+                and int(np.count_nonzero(k.has_landmark)) >= min_landmarks
             ],
             dtype=np.int64,
         )
@@ -259,6 +297,8 @@ class LoopCloser:
                 if i > 0:
                     self._odometry_edge(members[i - 1], k)
             self._localized.add(kf.sequence)
+            if kf.sequence == self._dense_sequence:
+                self._dense_until_s = kf.t_s + self.params.relocalization_dense_s
         for c in accepted:
             meas = loop_4dof(c.match.R_WB_odom, c.verified.T_match_query, self.heading_axis_B)
             to_map = c.match.sequence < self._first_own_sequence

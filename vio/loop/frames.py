@@ -120,6 +120,19 @@ def loop_4dof(
     return relative_4dof(R_WBi, np.zeros(3), R_WBj, R_WBi @ T_ij.p, axis_B)
 
 
+def projection_jacobian(p_C: np.ndarray) -> np.ndarray:
+    """Jacobian of the normalized projection ``(x / z, y / z)`` with respect to the point, shape (N, 2, 3).
+
+    Args:
+        p_C: Points in the camera frame (m), shape (N, 3), positive depth.
+    """
+    x, y, z = p_C[:, 0], p_C[:, 1], p_C[:, 2]
+    d_proj = np.zeros((len(p_C), 2, 3))
+    d_proj[:, 0, 0] = d_proj[:, 1, 1] = 1.0 / z
+    d_proj[:, 0, 2], d_proj[:, 1, 2] = -x / z**2, -y / z**2
+    return d_proj
+
+
 def tilt_error_rad(R_WB_a: np.ndarray, R_WB_b: np.ndarray) -> float:
     """Angle between the gravity directions that two attitudes imply in the body frame (rad).
 

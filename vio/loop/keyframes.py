@@ -2,7 +2,8 @@
 
 A frame becomes a keyframe when the estimated body moved ``min_translation_m``, turned ``min_rotation_deg`` or
 ``max_interval_s`` passed since the last keyframe of its odometry sequence. Each keyframe keeps ORB keypoints
-and binary descriptors, and a landmark per feature where one is known. Landmarks are triangulated (linear DLT,
+and binary descriptors, the pyramid level (octave) each was detected at, and a landmark per feature where
+one is known. Landmarks are triangulated (linear DLT,
 ``cv2.triangulatePoints``) from ORB matches with the previous keyframes of the same sequence (the last one,
 then older ones for features still without a landmark, a wider baseline), using the two
 *estimated* poses and the camera calibration, so PnP needs nothing from the estimator's internals. They are
@@ -19,6 +20,7 @@ import cv2
 import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.lie import log_so3
+from viotb.vio.loop.frames import projection_jacobian
 from viotb.vio.loop.params import KeyframeParams
 
 
@@ -40,6 +42,12 @@ class Keyframe:
             localized.
         p_WB_map: Position in the map frame (m), shape (3,), or None.
         tf: Bag-of-words term frequencies, shape (W,), or None before the vocabulary exists.
+        octaves: ORB pyramid level each feature was detected at, shape (N,) int; 0 for caller-given points;
+            None (all 0) for keyframes of a map saved without it. A level-``o`` keypoint is located on a grid
+            ``scale_factor ** o`` pixels wide, so its pixel noise grows by that factor.
+        landmark_sigma_m_per_px: Standard deviation of each triangulated landmark (square root of its
+            covariance's trace) per pixel of level-0 keypoint noise (m/px), shape (N,); inf where none, 0
+            for a caller-given landmark (never replaced); None (a loaded map) for unknown.
     """
 
     index: int
@@ -53,6 +61,14 @@ class Keyframe:
     R_WB_map: np.ndarray | None = None
     p_WB_map: np.ndarray | None = None
     tf: np.ndarray | None = None
+    octaves: np.ndarray | None = None
+    landmark_sigma_m_per_px: np.ndarray | None = None
+
+    def pixel_sigma_scale(self, scale_factor: float) -> np.ndarray:
+        """Pixel-noise scale of each feature, ``scale_factor ** octave``, shape (N,)."""
+        if self.octaves is None:
+            return np.ones(len(self.keypoints_uv_px))
+        return float(scale_factor) ** np.asarray(self.octaves, dtype=float)
 
     @property
     def has_landmark(self) -> np.ndarray:
@@ -112,7 +128,9 @@ class KeyframeDatabase:
         self.params = params or KeyframeParams()
         self.keyframes: list[Keyframe] = []
         self._orb = cv2.ORB_create(
-            nfeatures=self.params.orb_n_features, fastThreshold=self.params.orb_fast_threshold
+            nfeatures=self.params.orb_n_features,
+            scaleFactor=self.params.orb_scale_factor,
+            fastThreshold=self.params.orb_fast_threshold,
         )
         self._last_of_sequence: dict[int, int] = {}
 
@@ -156,7 +174,7 @@ class KeyframeDatabase:
         p_WB: np.ndarray,
         points_W: np.ndarray | None = None,
         points_uv_px: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """ORB features of an image, plus descriptors at caller-given landmark observations.
 
         Args:
@@ -167,10 +185,12 @@ class KeyframeDatabase:
             points_uv_px: Their pixels in this image, shape (M, 2), or None.
 
         Returns:
-            ``(keypoints_uv_px (N, 2) float32, descriptors (N, 32) uint8, landmarks_B (N, 3) with NaN rows)``.
+            ``(keypoints_uv_px (N, 2) float32, descriptors (N, 32) uint8, landmarks_B (N, 3) with NaN rows,
+            octaves (N,) int8: the pyramid level of each feature, 0 for the caller's points)``.
         """
         kps, desc = self._orb.detectAndCompute(image_u8, None)
         uv = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
+        octaves = np.array([k.octave for k in kps], dtype=np.int8)
         desc = np.zeros((0, 32), dtype=np.uint8) if desc is None else desc
         landmarks_B = np.full((len(uv), 3), np.nan)
         if points_W is not None and points_uv_px is not None and len(points_W):
@@ -184,7 +204,8 @@ class KeyframeDatabase:
                 desc = np.vstack([desc, desc_given])
                 lm = (np.asarray(points_W, dtype=float)[ids] - p_WB) @ R_WB
                 landmarks_B = np.vstack([landmarks_B, lm])
-        return uv, np.ascontiguousarray(desc, dtype=np.uint8), landmarks_B
+                octaves = np.concatenate([octaves, np.zeros(len(ids), dtype=np.int8)])
+        return uv, np.ascontiguousarray(desc, dtype=np.uint8), landmarks_B, octaves
 
     def add(self, keyframe: Keyframe) -> None:
         """Append a keyframe (its ``index`` must be the next position)."""
@@ -196,12 +217,17 @@ class KeyframeDatabase:
     def triangulate(self, prev: Keyframe, new: Keyframe, calib: CameraCalibration) -> int:
         """Triangulate landmarks from matches between two keyframes and store them in both.
 
-        A feature that already has a landmark keeps it. Checks: positive depth in ``[min_depth_m,
-        max_depth_m]`` in both cameras, ray parallax >= ``min_parallax_deg``, reprojection error <=
-        ``max_reprojection_px`` in both.
+        Checks: positive depth in ``[min_depth_m, max_depth_m]`` in both cameras, ray parallax >=
+        ``min_parallax_deg``, reprojection error <= ``max_reprojection_px`` in both. Each landmark's
+        covariance is that of the two-view least-squares point, ``(sum_v J_v^T J_v / s_v^2)^-1`` per pixel
+        of level-0 noise, with ``J_v`` the Jacobian of view ``v``'s projection (px per m) and ``s_v`` its
+        keypoint's pyramid scale (``Keyframe.pixel_sigma_scale``): a pair of a wider baseline or finer
+        keypoints gives a smaller one. A feature that already has a landmark keeps it unless the new one's
+        standard deviation is smaller (a keyframe's landmarks improve as its later neighbours arrive);
+        caller-given landmarks and those of keyframes without ``landmark_sigma_m_per_px`` are kept.
 
         Returns:
-            Number of landmarks made.
+            Number of landmarks made or replaced in ``new`` (or ``prev``, whichever is more).
         """
         kp = self.params
         i_new, i_prev = match_descriptors(new.descriptors, prev.descriptors, kp.match_ratio, kp.max_hamming)
@@ -218,23 +244,35 @@ class KeyframeDatabase:
         ok = np.all(np.isfinite(p_W), axis=1)
         f_px = 0.5 * (cam.fx + cam.fy)
         rays = []
-        for (R_WC, p_WC), xy in zip(poses, (xy_prev, xy_new), strict=True):
+        info = np.zeros((len(p_W), 3, 3))  # (1/m^2) per 1/px^2 of level-0 noise
+        views = ((prev, i_prev, xy_prev), (new, i_new, xy_new))
+        for (R_WC, p_WC), (kf, idx, xy) in zip(poses, views, strict=True):
             p_C = (p_W - p_WC) @ R_WC
             z = p_C[:, 2]
             ok &= (z > kp.min_depth_m) & (z < kp.max_depth_m)
             with np.errstate(divide="ignore", invalid="ignore"):
                 err_px = f_px * np.linalg.norm(p_C[:, :2] / z[:, None] - xy, axis=1)
+                J = f_px * projection_jacobian(np.where(ok[:, None], p_C, 1.0)) @ R_WC.T
             ok &= err_px <= kp.max_reprojection_px
+            scale2 = kf.pixel_sigma_scale(kp.orb_scale_factor)[idx] ** 2
+            info += np.einsum("nki,nkj->nij", J, J) / scale2[:, None, None]
             rays.append(p_W - p_WC)
         with np.errstate(divide="ignore", invalid="ignore"):
             cos_par = np.sum(rays[0] * rays[1], axis=1) / (
                 np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1)
             )
         ok &= cos_par <= np.cos(np.deg2rad(kp.min_parallax_deg))
+        sigma = np.full(len(p_W), np.inf)
+        if ok.any():
+            sigma[ok] = np.sqrt(np.trace(np.linalg.inv(info[ok]), axis1=1, axis2=2))
         made = 0
         for kf, idx in ((new, i_new[ok]), (prev, i_prev[ok])):
             lm_B = (p_W[ok] - kf.p_WB_odom) @ kf.R_WB_odom
-            free = ~np.isfinite(kf.landmarks_B[idx, 0])
-            kf.landmarks_B[idx[free]] = lm_B[free]
-            made = max(made, int(free.sum()))
+            if kf.landmark_sigma_m_per_px is None:
+                better = ~np.isfinite(kf.landmarks_B[idx, 0])
+            else:
+                better = sigma[ok] < kf.landmark_sigma_m_per_px[idx]
+                kf.landmark_sigma_m_per_px[idx[better]] = sigma[ok][better]
+            kf.landmarks_B[idx[better]] = lm_B[better]
+            made = max(made, int(better.sum()))
         return made

@@ -6,7 +6,8 @@ Arrays (K keyframes, N features in all, E edges, L closures):
   ``kf_R_WB_map`` (K, 3, 3), ``kf_p_WB_map`` (K, 3) in the map frame (m);
 - ``kf_feature_start`` (K + 1,) int64: keyframe k owns feature rows ``[start[k], start[k + 1])``;
 - ``keypoints_uv_px`` (N, 2) float32, ``descriptors`` (N, 32) uint8, ``landmarks_B`` (N, 3) float64 (NaN:
-none);
+none); optionally ``keypoint_octave`` (N,) int8, the ORB pyramid level of each feature (a map written
+  before it existed reads as all level 0);
 - ``vocabulary`` (W, 32) uint8; ``heading_axis_B`` (3,): the body axis whose heading is the yaw;
 - ``edge_ij`` (E, 2) int64 keyframe rows, ``edge_dyaw_rad`` (E,), ``edge_dp_m`` (E, 3), ``edge_is_loop``
 (E,) bool;
@@ -48,6 +49,7 @@ MAP_KEYS = (
     "closure_quat_xyzw",
     "closure_inliers",
 )
+MAP_OPTIONAL_KEYS = ("keypoint_octave",)
 
 
 def write_map_arrays(path: Path | str, arrays: dict[str, np.ndarray]) -> None:
@@ -65,7 +67,8 @@ def write_map_arrays(path: Path | str, arrays: dict[str, np.ndarray]) -> None:
     os.close(fd)
     try:
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, header_json=np.array(header), **{k: arrays[k] for k in MAP_KEYS})
+            keys = MAP_KEYS + tuple(k for k in MAP_OPTIONAL_KEYS if k in arrays)
+            np.savez_compressed(f, header_json=np.array(header), **{k: arrays[k] for k in keys})
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -86,8 +89,13 @@ def read_map_arrays(path: Path | str) -> dict[str, np.ndarray]:
         header = json.loads(str(data["header_json"]))
         if header.get("format") != MAP_FORMAT or header.get("version") != MAP_VERSION:
             raise ValueError(f"{path}: not a {MAP_FORMAT} v{MAP_VERSION} file (header {header})")
-        arrays = {k: data[k] for k in MAP_KEYS}
+        arrays = {k: data[k] for k in MAP_KEYS + MAP_OPTIONAL_KEYS if k in data or k in MAP_KEYS}
     start = arrays["kf_feature_start"]
     if len(start) != len(arrays["kf_t_s"]) + 1 or start[-1] != len(arrays["descriptors"]):
         raise ValueError(f"{path}: kf_feature_start does not match the keyframe and feature counts")
+    if "keypoint_octave" in arrays and len(arrays["keypoint_octave"]) != len(arrays["descriptors"]):
+        raise ValueError(
+            f"{path}: keypoint_octave has {len(arrays['keypoint_octave'])} rows, "
+            f"descriptors {len(arrays['descriptors'])}"
+        )
     return arrays

@@ -21,6 +21,9 @@ class KeyframeParams:
         max_interval_s: Time since the last keyframe that makes a new one even without motion (s).
         orb_n_features: Features per keyframe (``cv2.ORB_create(nfeatures=...)``).
         orb_fast_threshold: FAST threshold of ORB (grey levels).
+        orb_scale_factor: Scale between ORB's pyramid levels (``cv2.ORB_create(scaleFactor=...)``, OpenCV's
+            default); a level-``o`` keypoint's pixel noise is taken as ``orb_scale_factor ** o`` times a
+            level-0 one's (as ORB-SLAM weights its observations).
         triangulation_keyframes: Earlier keyframes of the same sequence a new keyframe triangulates against
             (the previous first; older ones add landmarks of a wider baseline to features still without).
         match_ratio: Lowe ratio of the best to the second-best Hamming distance for a match.
@@ -36,6 +39,7 @@ class KeyframeParams:
     max_interval_s: float = 2.0
     orb_n_features: int = 500
     orb_fast_threshold: int = 20
+    orb_scale_factor: float = 1.2
     triangulation_keyframes: int = 2
     match_ratio: float = 0.8
     max_hamming: int = 64
@@ -93,9 +97,14 @@ class VerificationParams:
         max_yaw_sigma_deg: Largest standard deviation of the query's heading that the inliers' geometry gives
             (``verification.pnp_sigmas``, deg). A view whose depths barely vary lets yaw trade with a
             lateral translation, so a small landmark bias becomes a large pose error with a small
-            reprojection error: on long-loop (40 s, seeds 6 and 12) every closure off by more than 5 cm or
-            1 deg had 0.12-0.20 deg, the others a median of 0.06 and 90 % under 0.11. Applied to loops of a
-            sequence already in the map frame, not to a relocalization (which has no other loop yet).
+            reprojection error. Unweighted, on long-loop (40 s, seeds 6 and 12) every closure off by more
+            than 5 cm or 1 deg had 0.12-0.20 deg, the others a median of 0.06 and 90 % under 0.11; with the
+            octave weighting (seeds 2, 6, 12, 14, gate off) the one closure outside had 0.122 deg, the good
+            ones a median of 0.053 and 7 % above 0.11. Applied to loops of a sequence already in the map
+            frame, not to a relocalization (which has no other loop yet).
+        weight_by_octave: Refine the pose with each inlier weighted by the pyramid levels of its query
+            keypoint and of the match keypoint its landmark came from (``verification``'s module
+            docstring); off: OpenCV's unweighted Levenberg-Marquardt alone.
     """
 
     min_inliers: int = 40
@@ -108,6 +117,7 @@ class VerificationParams:
     max_relative_translation_m: float = 5.0
     max_tilt_error_deg: float = 5.0
     max_yaw_sigma_deg: float = 0.11
+    weight_by_octave: bool = True
 
 
 @dataclass(frozen=True)
@@ -197,6 +207,15 @@ class LoopClosureParams:
         pose_graph: Pose graph.
         blend_duration_s: Time over which a new drift correction is blended in (s).
         tracking_loss_gap_s: A gap between frames longer than this starts a new odometry sequence (s).
+        relocalization_keyframe_interval_s: After a tracking loss, a frame becomes a keyframe this often (s)
+            whatever the motion, until the new sequence has relocalized and for ``relocalization_dense_s``
+            after: a hovering drone moves too little for the motion rule (0.3 m / 15 deg), its next keyframe
+            would wait ``max_interval_s`` (2 s), and the confirmation a second one. Short, because the
+            confirmation (``confirm_translation_m``, 3 cm) must hold over the drift of a coasted pose
+            between the two keyframes: measured up to 19 cm/s after 4 s dark (KLT, ``fly-lights-out``).
+        relocalization_dense_s: How long the dense keyframes go on after the relocalization (s): a filter
+            re-initialized after the loss still drifts while it converges, and each further closure
+            corrects it.
     """
 
     keyframes: KeyframeParams = field(default_factory=KeyframeParams)
@@ -206,3 +225,5 @@ class LoopClosureParams:
     pose_graph: PoseGraphParams = field(default_factory=PoseGraphParams)
     blend_duration_s: float = 1.0
     tracking_loss_gap_s: float = 1.0
+    relocalization_keyframe_interval_s: float = 0.1
+    relocalization_dense_s: float = 3.0

@@ -41,6 +41,13 @@ def map_arrays(
         "landmarks_B": np.vstack([np.zeros((0, 3))] + [kf.landmarks_B for kf in keyframes]).astype(
             np.float64
         ),
+        "keypoint_octave": np.concatenate(
+            [np.zeros(0, dtype=np.int8)]
+            + [
+                np.zeros(len(kf.descriptors), np.int8) if kf.octaves is None else kf.octaves
+                for kf in keyframes
+            ]
+        ).astype(np.int8),
         "vocabulary": np.asarray(vocabulary, dtype=np.uint8),
         "heading_axis_B": np.asarray(heading_axis_B, dtype=np.float64),
         "edge_ij": stack([(row_of[e.i], row_of[e.j]) for e in kept], (-1, 2), np.int64),
@@ -59,6 +66,7 @@ def keyframes_from_arrays(
 ) -> tuple[list[Keyframe], list[Edge4Dof], list[LoopClosure]]:
     """Inverse of :func:`map_arrays`: keyframes (index = row), edges and closures."""
     start = arrays["kf_feature_start"]
+    octaves = arrays.get("keypoint_octave")
     keyframes = []
     for k in range(len(arrays["kf_t_s"])):
         rows = slice(int(start[k]), int(start[k + 1]))
@@ -74,6 +82,7 @@ def keyframes_from_arrays(
                 landmarks_B=arrays["landmarks_B"][rows].copy(),
                 R_WB_map=arrays["kf_R_WB_map"][k].copy(),
                 p_WB_map=arrays["kf_p_WB_map"][k].copy(),
+                octaves=None if octaves is None else octaves[rows].copy(),
             )
         )
     edges = [

@@ -9,6 +9,16 @@ the result must have enough inliers (25, and a quarter of the matches) and a pla
 under 30 deg, bounded distance);
 here also a small RMS reprojection error and roll/pitch that agree with the odometry's, which gravity makes
 observable, so an image that looks alike but whose 3-D structure does not fit is refused.
+
+The refinement then weights each inlier by its features' pyramid levels (``weight_by_octave``): an ORB
+keypoint found at level ``o`` sits on a grid ``1.2 ** o`` pixels wide, so both the query's keypoint and the
+match keypoint its landmark was triangulated from carry that much more noise; the residual's variance is
+taken as ``s_q ** 2 + s_m ** 2`` (in level-0 units), and a weighted Gauss-Newton
+(:func:`refine_pose_weighted`) minimises the whitened residuals, as ORB-SLAM's pose optimisation does with
+its ``invSigma2`` per level (Mur-Artal et al. 2015, the motion-only bundle adjustment of its tracking).
+Unweighted, the coarse levels (40-60 % of the inliers on 320x240 renders, f = 120 px) pulled a closure
+6.7 cm / 0.98 deg off the truth where yaw trades with a lateral translation; weighted, 4.6 cm / 0.67 deg
+(long-loop 40 s, seed 14; median error 0.75 -> 0.50 cm).
 """
 
 from __future__ import annotations
@@ -18,7 +28,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.loop.frames import RigidTransform, horizontal_axis_B, loop_4dof, tilt_error_rad
+from viotb.vio.lie import exp_so3, skew_batch
+from viotb.vio.loop.frames import (
+    RigidTransform,
+    horizontal_axis_B,
+    loop_4dof,
+    projection_jacobian,
+    tilt_error_rad,
+)
 from viotb.vio.loop.keyframes import Keyframe, match_descriptors
 from viotb.vio.loop.params import KeyframeParams, VerificationParams
 
@@ -58,33 +75,97 @@ class Verdict:
     reason: str
 
 
-def pnp_sigmas(p_C: np.ndarray, sigma_norm: float, z_C: np.ndarray) -> tuple[float, float]:
+def pose_jacobian(p_C: np.ndarray) -> np.ndarray:
+    """Jacobian of normalized projections under ``p_C' = Exp(dtheta) p_C + dt``, shape (N, 2, 6).
+
+    Args:
+        p_C: Points in the camera frame (m), shape (N, 3), positive depth.
+
+    Returns:
+        ``d (x / z, y / z) / d (dtheta, dt)`` per point (columns: rotation then translation).
+    """
+    d_proj = projection_jacobian(p_C)
+    return np.concatenate([-d_proj @ skew_batch(p_C), d_proj], axis=2)
+
+
+def pnp_sigmas(
+    p_C: np.ndarray, sigma_norm: float, z_C: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[float, float]:
     """Heading and position standard deviations of a PnP pose from its inliers' geometry.
 
-    Gauss-Newton covariance ``sigma^2 (J^T J)^-1`` of the camera pose under a perturbation
+    Gauss-Newton covariance ``sigma^2 (J^T W J)^-1`` of the camera pose under a perturbation
     ``p_C' = Exp(dtheta) p_C + dt`` of the inliers' camera-frame points, with ``J`` the Jacobian of their
-    normalized projections: a view whose depths barely vary lets a rotation trade with a translation, which
-    shows here as large sigmas even when the reprojection error is small.
+    normalized projections and ``W`` their weights (``sigma`` is then the noise of a unit-weight residual):
+    a view whose depths barely vary lets a rotation trade with a translation, which shows here as large
+    sigmas even when the reprojection error is small.
 
     Args:
         p_C: Inlier landmarks in the query camera frame (m), shape (N, 3), positive depth.
-        sigma_norm: Reprojection noise in normalized coordinates (px / focal length).
+        sigma_norm: Reprojection noise of a unit-weight residual in normalized coordinates (px / focal
+            length).
         z_C: World up expressed in the query camera frame, shape (3,) unit.
+        weights: Inverse relative variances of the residuals, shape (N,); None for all 1.
 
     Returns:
         ``(sigma about world z (rad), largest position sigma (m))``.
     """
-    x, y, z = p_C[:, 0], p_C[:, 1], p_C[:, 2]
-    d_proj = np.zeros((len(p_C), 2, 3))
-    d_proj[:, 0, 0] = d_proj[:, 1, 1] = 1.0 / z
-    d_proj[:, 0, 2], d_proj[:, 1, 2] = -x / z**2, -y / z**2
-    skew = np.zeros((len(p_C), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -z, y, -x
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = z, -y, x
-    J = np.concatenate([-d_proj @ skew, d_proj], axis=2).reshape(-1, 6)  # d proj / d(dtheta, dt)
-    cov = sigma_norm**2 * np.linalg.pinv(J.T @ J)
+    J = pose_jacobian(p_C)
+    w = np.ones(len(p_C)) if weights is None else np.asarray(weights, dtype=float)
+    cov = sigma_norm**2 * np.linalg.pinv(np.einsum("n,nki,nkj->ij", w, J, J))
     yaw_var = float(z_C @ cov[:3, :3] @ z_C)
     return float(np.sqrt(max(yaw_var, 0.0))), float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
+
+
+def refine_pose_weighted(
+    points_B: np.ndarray,
+    xy_norm: np.ndarray,
+    weights: np.ndarray,
+    R_CB: np.ndarray,
+    p_CB: np.ndarray,
+    iterations: int = 10,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted Gauss-Newton refinement of a camera pose on 3-D / 2-D correspondences.
+
+    Minimises ``sum_i w_i |pi(R_CB X_i + p_CB) - x_i|^2`` with ``pi`` the normalized projection, stepping
+    ``R <- Exp(dtheta) R``, ``p <- Exp(dtheta) p + dt`` (the perturbation of :func:`pose_jacobian`).
+
+    Args:
+        points_B: Landmarks in the source frame (m), shape (N, 3).
+        xy_norm: Their observations in normalized (undistorted) coordinates, shape (N, 2).
+        weights: Inverse relative variances, shape (N,), positive.
+        R_CB: Initial rotation source -> camera, shape (3, 3).
+        p_CB: Initial translation (m), shape (3,).
+        iterations: Most Gauss-Newton steps (stops earlier once the step is below 1e-10).
+
+    Returns:
+        ``(R_CB (3, 3), p_CB (3,))``; the initial pose where the normal equations are singular.
+    """
+    R, p = np.asarray(R_CB, dtype=float), np.asarray(p_CB, dtype=float)
+    w = np.asarray(weights, dtype=float)
+    for _ in range(iterations):
+        p_C = points_B @ R.T + p
+        r = (p_C[:, :2] / p_C[:, 2:3] - xy_norm).reshape(-1, 2)
+        J = pose_jacobian(p_C)
+        H = np.einsum("n,nki,nkj->ij", w, J, J)
+        g = np.einsum("n,nki,nk->i", w, J, r)
+        try:
+            step = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            return np.asarray(R_CB, dtype=float), np.asarray(p_CB, dtype=float)
+        dR = exp_so3(step[:3])
+        R, p = dR @ R, dR @ p + step[3:]
+        if np.linalg.norm(step) < 1e-10:
+            break
+    return R, p
+
+
+def _reprojection(
+    points_B: np.ndarray, xy_norm: np.ndarray, R_CB: np.ndarray, p_CB: np.ndarray, f_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (N, 3) and their reprojection errors (N,) in pixels (NaN/inf behind)."""
+    p_C = points_B @ R_CB.T + p_CB
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p_C, f_px * np.linalg.norm(p_C[:, :2] / p_C[:, 2:3] - xy_norm, axis=1)
 
 
 def verify_candidate(
@@ -95,6 +176,7 @@ def verify_candidate(
     calib: CameraCalibration,
     keyframe_params: KeyframeParams,
     params: VerificationParams,
+    query_octaves: np.ndarray | None = None,
 ) -> Verdict:
     """PnP RANSAC of a query frame against a candidate keyframe's landmarks, with sanity checks.
 
@@ -106,6 +188,7 @@ def verify_candidate(
         calib: Camera calibration (intrinsics, distortion, ``R_BC``, ``p_BC``).
         keyframe_params: Matching thresholds (ratio, Hamming distance).
         params: Verification thresholds.
+        query_octaves: ORB pyramid level of each query keypoint, shape (N,); None for all level 0.
 
     Returns:
         The verdict; ``pose.T_match_query`` is ``T_Bm_Bq``.
@@ -137,18 +220,28 @@ def verify_candidate(
     if not ok or inl is None or len(inl) < params.min_inliers:
         return Verdict(None, "few inliers")
     inl = inl.ravel()
+    # Step 1: OpenCV's LM on the RANSAC inliers; step 2: the octave-weighted refinement on the inliers
+    # at that pose.
     rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, dist, rvec, tvec)
-    R_CB = cv2.Rodrigues(rvec)[0]
-    p_C = obj @ R_CB.T + tvec.ravel()
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err_px = f_px * np.linalg.norm(p_C[:, :2] / p_C[:, 2:3] - img, axis=1)
+    R_CB, p_CB = cv2.Rodrigues(rvec)[0], tvec.ravel().copy()
+    weights = np.ones(len(iq))
+    if params.weight_by_octave:
+        s = keyframe_params.orb_scale_factor
+        s_q = np.ones(len(query_uv_px)) if query_octaves is None else s ** np.asarray(query_octaves, float)
+        s_m = match.pixel_sigma_scale(s)[lm_rows[il]]
+        weights = 2.0 / (s_q[iq] ** 2 + s_m**2)
+        p_C, err_px = _reprojection(obj, img, R_CB, p_CB, f_px)
+        sel = (err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0)
+        if sel.sum() >= params.min_inliers:
+            R_CB, p_CB = refine_pose_weighted(obj[sel], img[sel], weights[sel], R_CB, p_CB)
+    p_C, err_px = _reprojection(obj, img, R_CB, p_CB, f_px)
     inliers = np.flatnonzero((err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0))
     if len(inliers) < max(params.min_inliers, params.min_inlier_ratio * len(iq)):
         return Verdict(None, "few inliers")
     rms_px = float(np.sqrt(np.mean(err_px[inliers] ** 2)))
     if rms_px > params.max_rms_px:
         return Verdict(None, "reprojection")
-    T_Cq_Bm = RigidTransform(R_CB, tvec.ravel().copy())
+    T_Cq_Bm = RigidTransform(R_CB, p_CB)
     T_B_C = RigidTransform(calib.R_BC, np.asarray(calib.p_BC, dtype=float))
     T_mq = T_Cq_Bm.inverse() @ T_B_C.inverse()
     dyaw, _ = loop_4dof(match.R_WB_odom, T_mq, horizontal_axis_B(match.R_WB_odom))
@@ -160,6 +253,8 @@ def verify_candidate(
     if np.rad2deg(tilt) > params.max_tilt_error_deg:
         return Verdict(None, "tilt")
     z_C = (R_WBq_odom @ calib.R_BC).T @ np.array([0.0, 0.0, 1.0])
-    yaw_sigma_rad, t_sigma_m = pnp_sigmas(p_C[inliers], max(rms_px, 0.5) / f_px, z_C)
+    w_in = weights[inliers]
+    unit_rms_px = float(np.sqrt(np.mean(w_in * err_px[inliers] ** 2)))  # the noise of a unit weight
+    yaw_sigma_rad, t_sigma_m = pnp_sigmas(p_C[inliers], max(unit_rms_px, 0.5) / f_px, z_C, w_in)
     verified = VerifiedPose(T_mq, len(inliers), len(iq), rms_px, float(np.rad2deg(yaw_sigma_rad)), t_sigma_m)
     return Verdict(verified, "ok")
