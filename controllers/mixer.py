@@ -18,6 +18,8 @@ exactly. Otherwise, in priority order:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from viotb.controllers.vehicle import VehicleParams
 
@@ -48,6 +50,10 @@ class Mixer:
         self._allocation_inv = np.linalg.inv(allocation)
         self._min_N = vehicle.min_thrust_N.copy()
         self._max_N = vehicle.max_thrust_N.copy()
+        # Plain-float copies for the per-tick exact inversion (:meth:`motor_thrusts_f`): four 4-term sums
+        # in Python floats cost less than one small numpy product.
+        self._inv_rows = tuple(tuple(row) for row in self._allocation_inv.tolist())
+        self._lo_hi = tuple(zip(self._min_N.tolist(), self._max_N.tolist(), strict=True))
 
     @property
     def allocation(self) -> np.ndarray:
@@ -77,10 +83,32 @@ class Mixer:
                 f"Mixer.motor_thrusts: need a finite collective and 3 finite moments, got "
                 f"{collective_N!r}, {np.asarray(moments_B_Nm)!r}"
             )
+        mx, my, mz = moments.tolist()
+        return self.motor_thrusts_f(float(collective_N), mx, my, mz)
+
+    def motor_thrusts_f(self, collective_N: float, mx_Nm: float, my_Nm: float, mz_Nm: float) -> np.ndarray:
+        """:meth:`motor_thrusts` for finite plain floats (the controllers' per-tick path), shape (4,).
+
+        The exact inversion runs in Python floats (the same products as ``A^-1 @ w``, summed left to right
+        rather than by BLAS, so a result may differ from the matrix product in the last bit); a request
+        beyond the limits goes through the saturation policy.
+        """
+        exact = [
+            r0 * collective_N + r1 * mx_Nm + r2 * my_Nm + r3 * mz_Nm for r0, r1, r2, r3 in self._inv_rows
+        ]
+        for f, (lo_i, hi_i) in zip(exact, self._lo_hi, strict=True):
+            if not lo_i <= f <= hi_i:
+                return self._saturate(collective_N, np.array([mx_Nm, my_Nm, mz_Nm]))
+        return np.array(exact)
+
+    def _saturate(self, collective_N: float, moments: np.ndarray) -> np.ndarray:
+        """Steps 1-4 of the saturation policy (module docstring) for a request beyond the motor limits."""
+        if not math.isfinite(collective_N) or not np.isfinite(moments).all():
+            raise ValueError(
+                f"Mixer.motor_thrusts: need a finite collective and 3 finite moments, got "
+                f"{collective_N!r}, {moments!r}"
+            )
         lo, hi = self._min_N, self._max_N
-        exact = self._allocation_inv @ np.concatenate([[collective_N], moments])
-        if np.all(exact >= lo) and np.all(exact <= hi):
-            return exact
         col_T, col_rp, col_yaw = (
             self._allocation_inv[:, 0],
             self._allocation_inv[:, 1:3],

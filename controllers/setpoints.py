@@ -28,6 +28,9 @@ from viotb.controllers.types import FlatOutput
 _CONTINUITY_TOL_M = 1e-3
 """Sequence items must join within this distance (m)."""
 
+_BINOMIAL = ((1,), (1, 1), (1, 2, 1), (1, 3, 3, 1))
+"""Rows 0-3 of Pascal's triangle (the Leibniz rule of :class:`ExcitationManeuver`)."""
+
 
 @runtime_checkable
 class Setpoint(Protocol):
@@ -82,12 +85,16 @@ def _min_jerk_segment(
 ) -> FlatOutput:
     """Sample a rest-to-rest minimum-jerk move from ``(p0, yaw0)`` to ``(p1, yaw1)`` at ``t_s``."""
     s, ds, d2s, d3s = min_jerk_profile(t_s / duration_s)
-    dp, dyaw, T = p1 - p0, yaw1 - yaw0, duration_s
+    a = np.asarray(p0, dtype=float).tolist()
+    dp = [b - x for b, x in zip(np.asarray(p1, dtype=float).tolist(), a, strict=True)]
+    dyaw, T = yaw1 - yaw0, duration_s
+    T2, T3 = T**2, T**3
+    # Per axis in plain floats: the same operations as the 3-vector expressions, without numpy's overhead.
     return FlatOutput(
-        p_W=p0 + s * dp,
-        v_W=dp * ds / T,
-        a_W=dp * d2s / T**2,
-        j_W=dp * d3s / T**3,
+        p_W=[x + s * d for x, d in zip(a, dp, strict=True)],
+        v_W=[d * ds / T for d in dp],
+        a_W=[d * d2s / T2 for d in dp],
+        j_W=[d * d3s / T3 for d in dp],
         yaw_rad=yaw0 + s * dyaw,
         yaw_rate_rad_s=dyaw * ds / T,
     )
@@ -103,6 +110,8 @@ class HoverPoint:
     def __post_init__(self) -> None:
         """Validate the position."""
         object.__setattr__(self, "p_W", _vector("HoverPoint", "p_W", self.p_W))
+        # The same immutable record at every time: built once, not at every control tick.
+        object.__setattr__(self, "_setpoint", FlatOutput(p_W=self.p_W, yaw_rad=self.yaw_rad))
 
     @property
     def duration_s(self) -> float:
@@ -111,7 +120,7 @@ class HoverPoint:
 
     def sample(self, t_s: float) -> FlatOutput:
         """The hover point, at rest."""
-        return FlatOutput(p_W=self.p_W, yaw_rad=self.yaw_rad)
+        return self._setpoint
 
 
 class Waypoints:
@@ -396,17 +405,18 @@ class ExcitationManeuver:
             )
         _positive("ExcitationManeuver", "yaw_frequency_hz", self.yaw_frequency_hz)
         _positive("ExcitationManeuver", "duration_s", self.duration_s)
+        # The four channels (x, y, z, yaw), stacked once rather than at every sample.
+        object.__setattr__(self, "_amplitudes", np.append(self.amplitude_m, self.yaw_amplitude_rad))
+        object.__setattr__(self, "_frequencies", np.append(self.frequency_hz, self.yaw_frequency_hz))
 
-    def _window(self, t: float) -> np.ndarray:
-        """``h = sin^2(pi t / T) = (1 - cos(2 pi t / T)) / 2`` and its 3 derivatives, shape (4,)."""
+    def _window(self, t: float) -> tuple[float, float, float, float]:
+        """``h = sin^2(pi t / T) = (1 - cos(2 pi t / T)) / 2`` and its 3 derivatives."""
         c = 2.0 * math.pi / self.duration_s
-        return np.array(
-            [
-                0.5 * (1.0 - math.cos(c * t)),
-                0.5 * c * math.sin(c * t),
-                0.5 * c**2 * math.cos(c * t),
-                -0.5 * c**3 * math.sin(c * t),
-            ]
+        return (
+            0.5 * (1.0 - math.cos(c * t)),
+            0.5 * c * math.sin(c * t),
+            0.5 * c**2 * math.cos(c * t),
+            -0.5 * c**3 * math.sin(c * t),
         )
 
     @staticmethod
@@ -419,19 +429,22 @@ class ExcitationManeuver:
     def sample(self, t_s: float) -> FlatOutput:
         """Flat output at ``t_s`` (s); Leibniz rule for the windowed sines."""
         t = min(max(float(t_s), 0.0), self.duration_s)
-        h = self._window(t)[:, None]
-        amplitudes = np.append(self.amplitude_m, self.yaw_amplitude_rad)
-        frequencies = np.append(self.frequency_hz, self.yaw_frequency_hz)
-        g = self._sine(amplitudes, frequencies, t)
-        binomial = ((1,), (1, 1), (1, 2, 1), (1, 3, 3, 1))
-        d = np.array([sum(c * h[k] * g[n - k] for k, c in enumerate(binomial[n])) for n in range(4)])
+        h = self._window(t)
+        g = self._sine(self._amplitudes, self._frequencies, t).tolist()
+        # d^n/dt^n (h g) = sum_k C(n, k) h^(k) g^(n-k) per channel, in plain floats (the same products and
+        # left-to-right sums as the former array expression).
+        d = [
+            [sum(c * h[k] * g[n - k][ch] for k, c in enumerate(_BINOMIAL[n])) for ch in range(4)]
+            for n in range(4)
+        ]
+        cx, cy, cz = self.center_W_m.tolist()
         return FlatOutput(
-            p_W=self.center_W_m + d[0, :3],
-            v_W=d[1, :3],
-            a_W=d[2, :3],
-            j_W=d[3, :3],
-            yaw_rad=self.yaw_center_rad + float(d[0, 3]),
-            yaw_rate_rad_s=float(d[1, 3]),
+            p_W=[cx + d[0][0], cy + d[0][1], cz + d[0][2]],
+            v_W=d[1][:3],
+            a_W=d[2][:3],
+            j_W=d[3][:3],
+            yaw_rad=self.yaw_center_rad + d[0][3],
+            yaw_rate_rad_s=d[1][3],
         )
 
 

@@ -2,6 +2,7 @@
 
 import json
 import math
+import sys
 
 import pytest
 from viotb.envs.tools.bench import SECTIONS, run_bench
@@ -16,7 +17,12 @@ FIGURES = {
     ),
     "record": ("realtime_factor_median", "realtime_factor"),
     "estimator": ("ms_per_frame_median", "ms_per_frame_p99"),
-    "closed_loop": ("realtime_factor_klt_median", "realtime_factor_sim_median"),
+    "closed_loop": (
+        "realtime_factor_klt_median",
+        "realtime_factor_sim_median",
+        "cpu_realtime_factor_klt_median",
+        "cpu_realtime_factor_sim_median",
+    ),
 }
 """Section -> its speed figures (each must be a positive finite number)."""
 
@@ -26,7 +32,10 @@ GYM_FIGURES = (
     "single_realtime_factor",
     "vector_steps_per_s",
     "vector_realtime_factor",
+    "single_cpu_realtime_factor",
 )
+GYM_PROC_FIGURES = ("vector_cpu_realtime_factor", "vector_cpu_overhead")
+"""Read from ``/proc`` (the async workers' CPU time): required on Linux."""
 
 
 def _assert_figures(section: dict, keys: tuple[str, ...]) -> None:
@@ -43,6 +52,8 @@ def _check(result: dict, sections: tuple[str, ...]) -> None:
             assert set(result["gym"]) == set(SETUPS)
             for setup in SETUPS:
                 _assert_figures(result["gym"][setup], GYM_FIGURES)
+                if sys.platform.startswith("linux"):
+                    _assert_figures(result["gym"][setup], GYM_PROC_FIGURES)
                 assert result["gym"][setup]["vector_num_envs"] == 2
         else:
             _assert_figures(result[name], FIGURES[name])

@@ -1,10 +1,11 @@
 """The Gymnasium hot-path speed-ups change no number: the fast env against the pre-speed-up code path.
 
 The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the memoized gust
-decay, the SE(3) controller's gain constants built once, ``SE3Controller.thrusts`` and the 3-vector
-``lie.cross`` are patched back, and the IMU model runs although nothing reads it, in the second env
-of each pair, to the code they replaced (copied below), and both envs are stepped with the same seed and
-the same actions: observations, rewards, terminations and ``info`` must agree bit for bit.
+decay in plain floats and ``SE3Controller.thrusts`` are patched back, and the IMU model runs although nothing
+reads it, in the second env of each pair, to the code they replaced (copied below), and both envs are stepped
+with the same seed and the same actions: observations, rewards, terminations and ``info`` must agree bit for
+bit. (The SE(3) controller's float path is not bit-identical to its former numpy form, BLAS sums being fused
+multiply-adds: tests/test_se3_float_path.py holds it to that form at round-off.)
 """
 
 from __future__ import annotations
@@ -16,14 +17,6 @@ from viotb.envs.gym.base import VioQuadEnv
 from viotb.envs.gym.hover import HoverEnv
 from viotb.envs.run.closed_loop import _COS_MAX_TILT, ClosedLoopSim, TruthState
 from viotb.vio.types import StateEstimate
-
-
-def _old_cross(a, b):
-    out = np.empty(np.broadcast_shapes(np.shape(a), np.shape(b)))
-    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
-    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
-    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-    return out
 
 
 def _old_truth(self):
@@ -57,30 +50,8 @@ def _old_apply_wind(self, dt):
         a = np.exp(-dt / w.gust_time_constant_s)
         noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * np.sqrt(1.0 - a * a)
         noise[2] = 0.0
-        self._wind_gust_W = a * self._wind_gust_W + noise
+        self._wind_gust_W = a * np.asarray(self._wind_gust_W) + noise
     self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
-
-
-def _old_integrate(self, t_s, e_p):
-    if self._last_t_s is not None:
-        dt = t_s - self._last_t_s
-        if 0.0 < dt <= se3._MAX_INTEGRATION_STEP_S:
-            self._integral_m_s = self._integral_m_s + e_p * dt
-    self._last_t_s = float(t_s)
-    ki = self._gains.ki_N_m_s
-    limit = np.full(3, np.inf)
-    np.divide(self._gains.integral_limit_N, ki, out=limit, where=ki > 0.0)
-    self._integral_m_s = np.clip(self._integral_m_s, -limit, limit)
-
-
-def _old_limit_tilt(self, force_W):
-    out = force_W.copy()
-    out[2] = max(out[2], self._gains.min_thrust_fraction * self._vehicle.hover_thrust_N)
-    horizontal = float(np.linalg.norm(out[:2]))
-    max_horizontal = out[2] * np.tan(self._gains.max_tilt_rad)
-    if horizontal > max_horizontal:
-        out[:2] *= max_horizontal / horizontal
-    return out
 
 
 def _assert_same(a, b, where):
@@ -102,9 +73,6 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
             m.setattr(ClosedLoopSim, "crashed", _old_crashed)
             m.setattr(ClosedLoopSim, "_apply_wind", _old_apply_wind)
             m.setattr(VioQuadEnv, "_reads_imu", lambda self: True)
-            m.setattr(se3.SE3Controller, "_integrate", _old_integrate)
-            m.setattr(se3.SE3Controller, "_limit_tilt", _old_limit_tilt)
-            m.setattr(se3, "cross", _old_cross)
             m.setattr(se3.SE3Controller, "thrusts", lambda self, t, x, sp: self.update(t, x, sp).thrusts_N)
         env = HoverEnv(**kwargs)
         out = [env.reset(seed=3)]

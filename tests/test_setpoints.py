@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from viotb.controllers.setpoints import (
@@ -171,3 +173,34 @@ def test_sequence_rejects_jumps_and_endless_items() -> None:
         Sequence([HoverPoint([0.0, 0.0, 1.0]), HoverPoint([0.0, 0.0, 1.0])])
     with pytest.raises(ValueError, match="at least one"):
         Sequence([])
+
+
+def _array_excitation(ex: ExcitationManeuver, t: float) -> np.ndarray:
+    """The windowed sines' Leibniz rule as one array expression (the form the float path replaced)."""
+    c = 2.0 * math.pi / ex.duration_s
+    cos, sin = math.cos(c * t), math.sin(c * t)
+    h = np.array([0.5 * (1.0 - cos), 0.5 * c * sin, 0.5 * c**2 * cos, -0.5 * c**3 * sin])[:, None]
+    amp = np.append(ex.amplitude_m, ex.yaw_amplitude_rad)
+    g = ExcitationManeuver._sine(amp, np.append(ex.frequency_hz, ex.yaw_frequency_hz), t)
+    binomial = ((1,), (1, 1), (1, 2, 1), (1, 3, 3, 1))
+    return np.array([sum(k_c * h[k] * g[n - k] for k, k_c in enumerate(binomial[n])) for n in range(4)])
+
+
+def test_excitation_and_min_jerk_float_paths_match_array_forms_bit_for_bit():
+    """The per-tick float arithmetic of the setpoints equals the numpy expressions it replaced exactly."""
+    ex = ExcitationManeuver(np.array([0.1, -0.2, 1.5]), yaw_center_rad=0.3)
+    for t in np.linspace(0.0, ex.duration_s, 301):
+        d, f = _array_excitation(ex, float(t)), ex.sample(float(t))
+        np.testing.assert_array_equal(f.p_W, ex.center_W_m + d[0, :3])
+        for got, want in ((f.v_W, d[1, :3]), (f.a_W, d[2, :3]), (f.j_W, d[3, :3])):
+            np.testing.assert_array_equal(got, want)
+        assert f.yaw_rad == ex.yaw_center_rad + float(d[0, 3]) and f.yaw_rate_rad_s == float(d[1, 3])
+    p0, p1, T = np.array([0.1, 0.2, 0.05]), np.array([0.4, -0.3, 1.5]), 3.0
+    seg = Waypoints(np.stack([p0, p1]), segment_times_s=[T])
+    for t in np.linspace(0.0, T, 97):
+        s, ds, d2s, d3s = min_jerk_profile(float(t) / T)
+        f, dp = seg.sample(float(t)), p1 - p0
+        np.testing.assert_array_equal(f.p_W, p0 + s * dp)
+        np.testing.assert_array_equal(f.v_W, dp * ds / T)
+        np.testing.assert_array_equal(f.a_W, dp * d2s / T**2)
+        np.testing.assert_array_equal(f.j_W, dp * d3s / T**3)

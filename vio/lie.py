@@ -100,7 +100,9 @@ def right_jacobian_inv_so3(phi: np.ndarray) -> np.ndarray:
 
 def quat_wxyz_to_rotmat(quat_wxyz: np.ndarray) -> np.ndarray:
     """Hamilton unit quaternion (w, x, y, z), shape (4,) -> rotation matrix, shape (3, 3)."""
-    w, x, y, z = np.asarray(quat_wxyz, dtype=float) / np.linalg.norm(quat_wxyz)
+    # Plain floats after the (numpy) normalisation: the same IEEE operations as on numpy scalars, 10x cheaper.
+    q = np.asarray(quat_wxyz, dtype=float).ravel()
+    w, x, y, z = (q / np.sqrt(q.dot(q))).tolist()  # np.linalg.norm's own formula for a real vector
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],

@@ -19,6 +19,7 @@ from the estimator only.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import gymnasium
@@ -244,9 +245,9 @@ class VioQuadEnv(gymnasium.Env):
             raise ValueError(
                 f"action must have shape (4,) for action_type {self.config.action_type!r}, got {a.shape}"
             )
-        if not np.all(np.isfinite(a)):
+        if not np.isfinite(a).all():
             raise ValueError(f"action must be finite, got {a.tolist()}")
-        return np.clip(a, -1.0, 1.0)
+        return a.clip(-1.0, 1.0)
 
     def _thrusts(self, a: np.ndarray, est: StateEstimate) -> np.ndarray:
         """Motor thrusts (N) for action ``a`` on the estimate ``est`` (one low-level tick)."""
@@ -354,7 +355,7 @@ class VioQuadEnv(gymnasium.Env):
         reason = ""
         for _ in range(self._n_inner):
             est = loop.estimate()
-            if est is None or loop.health().diverged or not np.isfinite(est.p_WB).all():
+            if est is None or loop.health().diverged or not all(map(math.isfinite, est.p_WB.tolist())):
                 reason = "diverged"
                 break
             loop.advance(self._thrusts(a, est), self.config.inner_ctrl_dt)
@@ -398,7 +399,7 @@ class VioQuadEnv(gymnasium.Env):
         if est is None:
             parts = [np.zeros(n) for _, n, _, _ in self._state_layout()]
         else:
-            var = np.diag(est.cov)
+            var = est.cov.diagonal()
             parts = [
                 est.p_WB - self._target_est,
                 est.v_WB,
@@ -410,8 +411,10 @@ class VioQuadEnv(gymnasium.Env):
                 var[6:9],
                 [float(health.tracked_features)],
             ]
-        vec = np.nan_to_num(np.concatenate(parts).astype(np.float32), nan=0.0, posinf=1e6, neginf=-1e6)
-        return np.clip(vec, self._state_low, self._state_high)
+        vec = np.concatenate(parts, dtype=np.float32)
+        if not np.isfinite(vec).all():  # rare: skip nan_to_num's own pass when every entry is finite
+            vec = np.nan_to_num(vec, nan=0.0, posinf=1e6, neginf=-1e6)
+        return np.minimum(np.maximum(vec, self._state_low, out=vec), self._state_high, out=vec)
 
     def _get_obs(self):
         state = self._state_vector()

@@ -61,6 +61,16 @@ _COS_MAX_TILT = math.cos(math.radians(80.0))
 """Crash test: a body z axis more than 80 deg from vertical."""
 
 
+def _read_only(arr: np.ndarray) -> np.ndarray:
+    arr.setflags(write=False)
+    return arr
+
+
+_ZERO3 = _read_only(np.zeros(3))
+_ZERO_COV = _read_only(np.zeros((15, 15)))
+"""The truth's biases and covariance (zero), shared read-only by every ``ground-truth`` feed."""
+
+
 def _rotz(yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -86,7 +96,7 @@ class ClosedLoopSim:
         self.sim = Simulation("quadrotor", config.scene)
         rng = np.random.default_rng(seed)
         self._rng_imu, self._rng_pix, self._rng_cam, self._rng_wind, self._rng_lm = rng.spawn(5)
-        dt = self.sim.timestep_s
+        dt = self._dt = self.sim.timestep_s
         imu_params = imu_preset(config.imu_preset)
         self.imu_model = ImuModel(imu_params, self._rng_imu)
         self._imu_every = self._steps_per_period(1.0 / imu_params.rate_hz, "IMU", dt)
@@ -146,11 +156,11 @@ class ClosedLoopSim:
         self._crash_lo = None if self._bounds is None else np.subtract(self._bounds[0], 0.5)
         self._crash_hi = None if self._bounds is None else np.add(self._bounds[1], 0.5)
         # truth() memo: the TruthState of one physics state, keyed on (time, qpos, qvel) (see truth()).
-        self._truth_key: bytes | None = None
+        self._truth_key: tuple | None = None
         self._truth: TruthState | None = None
         self._truth_fed: TruthState | None = None
         self._pending: deque[tuple[float, CameraFrame]] = deque()
-        self._wind_gust_W = np.zeros(3)
+        self._wind_gust_W = (0.0, 0.0, 0.0)  # gust force (N) in W, plain floats
         self._gust_decay: dict[tuple[float, float], tuple[float, float]] = {}
         self._step_count = 0
         self.last_frame: CameraFrame | None = None
@@ -195,7 +205,7 @@ class ClosedLoopSim:
         truth several times per low-level tick: the ``ground-truth`` estimate, the crash test, ``info``).
         """
         data = self.sim.data
-        key = data.qpos.tobytes() + data.qvel.tobytes() + np.float64(data.time).tobytes()
+        key = (data.time, data.qpos.tobytes(), data.qvel.tobytes())
         if key != self._truth_key:
             R_WB, p_WB = self.sim.pose()
             tr = TruthState(self.t_s, R_WB, p_WB, self.sim.velocity_W(), self.sim.angular_velocity_B())
@@ -285,7 +295,16 @@ class ClosedLoopSim:
             return  # this physics state was already fed (same record, same estimate)
         self._truth_fed = tr
         self.estimator.feed_truth(
-            StateEstimate(t_s=tr.t_s, R_WB=tr.R_WB, p_WB=tr.p_WB, v_WB=tr.v_WB, omega_B_rad_s=tr.omega_B)
+            StateEstimate(
+                t_s=tr.t_s,
+                R_WB=tr.R_WB,
+                p_WB=tr.p_WB,
+                v_WB=tr.v_WB,
+                gyro_bias_rad_s=_ZERO3,
+                accel_bias_m_s2=_ZERO3,
+                omega_B_rad_s=tr.omega_B,
+                cov=_ZERO_COV,
+            )
         )
 
     def _apply_wind(self, dt: float) -> None:
@@ -297,13 +316,17 @@ class ClosedLoopSim:
             key = (dt, w.gust_time_constant_s)
             decay = self._gust_decay.get(key)
             if decay is None:
-                a = np.exp(-dt / w.gust_time_constant_s)
-                decay = self._gust_decay[key] = (a, np.sqrt(1.0 - a * a))
+                a = float(np.exp(-dt / w.gust_time_constant_s))
+                decay = self._gust_decay[key] = (a, float(np.sqrt(1.0 - a * a)))
             a, scale = decay
-            noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * scale
-            noise[2] = 0.0
-            self._wind_gust_W = a * self._wind_gust_W + noise
-        self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
+            # Per axis in plain floats: (n sigma) scale, then a g + noise, the vertical noise zero.
+            n0, n1, _ = self._rng_wind.standard_normal(3).tolist()
+            sigma = w.gust_sigma_N
+            g0, g1, g2 = self._wind_gust_W
+            self._wind_gust_W = (a * g0 + n0 * sigma * scale, a * g1 + n1 * sigma * scale, a * g2 + 0.0)
+        m0, m1, m2 = w.mean_force_W_N
+        g0, g1, g2 = self._wind_gust_W
+        self.sim.data.xfrc_applied[self._body_id, :3] = (m0 + g0, m1 + g1, m2 + g2)
 
     def advance(self, thrusts_N: np.ndarray, duration_s: float) -> None:
         """Hold motor thrusts for ``duration_s`` (rounded to physics steps), running sensors and estimator.
@@ -312,24 +335,23 @@ class ClosedLoopSim:
             thrusts_N: Motor thrusts (N), shape (4,); MuJoCo clips them to the actuators' ctrlrange.
             duration_s: Time to advance (s), at least one physics step.
         """
-        dt = self.sim.timestep_s
+        dt = self._dt
         n = max(1, round(duration_s / dt))
+        imu_every, cam_every = self._imu_every, self._cam_every
+        ctrl = self.sim.checked_ctrl(thrusts_N)
         done = 0
         while done < n:
             # Step the physics in one call up to the next sensor event (IMU sample, exposure, frame arrival);
             # mj_forward between plain steps would only recompute what the next mj_step computes again.
-            chunk = min(
-                n - done,
-                self._imu_every - self._step_count % self._imu_every,
-                self._cam_every - self._step_count % self._cam_every,
-            )
+            count = self._step_count
+            chunk = min(n - done, imu_every - count % imu_every, cam_every - count % cam_every)
             if self._pending:
                 chunk = min(chunk, max(1, math.ceil((self._pending[0][0] - self.t_s) / dt - 1e-9)))
             self._apply_wind(dt * chunk)
-            self.sim.step(thrusts_N, chunk)
-            self._step_count += chunk
+            self.sim.step_checked(ctrl, chunk)
+            self._step_count = count = count + chunk
             done += chunk
-            if self.simulate_imu and self._step_count % self._imu_every == 0:
+            if self.simulate_imu and count % imu_every == 0:
                 omega_B, f_B = self.config.faults.imu_input(
                     self.sim.angular_velocity_B(), self.sim.specific_force_B()
                 )
@@ -340,7 +362,7 @@ class ClosedLoopSim:
                     sample = ImuSample(sample.t_s, nan3, nan3, sample.saturated)
                 self.last_imu = sample
                 self._feed(self.estimator.feed_imu, sample)
-            if self._step_count % self._cam_every == 0:
+            if count % cam_every == 0:
                 self._capture(self.t_s)
             if self._pending:
                 self._deliver_frames()

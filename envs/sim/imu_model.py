@@ -273,11 +273,12 @@ class ImuModel:
         p = self._params
         gyro = _quantize(gyro, p.gyro_quantization_rad_s)
         accel = _quantize(accel, p.accel_quantization_m_s2)
-        saturated = bool(
-            (np.abs(gyro) > p.gyro_range_rad_s).any() or (np.abs(accel) > p.accel_range_m_s2).any()
-        )
-        gyro = np.clip(gyro, -p.gyro_range_rad_s, p.gyro_range_rad_s)
-        accel = np.clip(accel, -p.accel_range_m_s2, p.accel_range_m_s2)
+        # The saturation test on plain floats; within range the clip is the identity and is skipped.
+        r_g, r_a = p.gyro_range_rad_s, p.accel_range_m_s2
+        saturated = any(abs(x) > r_g for x in gyro.tolist()) or any(abs(x) > r_a for x in accel.tolist())
+        if saturated:
+            gyro = np.clip(gyro, -r_g, r_g)
+            accel = np.clip(accel, -r_a, r_a)
         return ImuSample(float(t_s), gyro, accel, saturated)
 
     def measure_series(self, t_s: np.ndarray, omega_B: np.ndarray, f_B: np.ndarray) -> ImuSeries:

@@ -189,15 +189,26 @@ class Simulation:
         Raises:
             ValueError: Wrong ``ctrl`` shape, non-finite ``ctrl`` or ``n_steps < 1``.
         """
+        self.step_checked(None if ctrl is None else self.checked_ctrl(ctrl), n_steps)
+
+    def checked_ctrl(self, ctrl: np.ndarray) -> np.ndarray:
+        """``ctrl`` as a float array of shape (nu,), checked once for loops that step it in several chunks.
+
+        Raises:
+            ValueError: Wrong shape or non-finite values.
+        """
+        ctrl = np.asarray(ctrl, dtype=float)
+        if ctrl.shape != (self.model.nu,) or not np.isfinite(ctrl).all():
+            raise ValueError(f"ctrl must be a finite array of shape ({self.model.nu},), got {ctrl!r}")
+        return ctrl
+
+    def step_checked(self, ctrl: np.ndarray | None, n_steps: int = 1) -> None:
+        """:meth:`step` for a ``ctrl`` already passed through :meth:`checked_ctrl` (or None)."""
         if n_steps < 1:
             raise ValueError(f"n_steps must be >= 1, got {n_steps}")
         if ctrl is not None:
-            ctrl = np.asarray(ctrl, dtype=float)
-            if ctrl.shape != (self.model.nu,) or not np.all(np.isfinite(ctrl)):
-                raise ValueError(f"ctrl must be a finite array of shape ({self.model.nu},), got {ctrl!r}")
             self.data.ctrl[:] = ctrl
-        for _ in range(n_steps):
-            mujoco.mj_step(self.model, self.data)
+        mujoco.mj_step(self.model, self.data, n_steps)  # the same as n_steps calls, without their overhead
         mujoco.mj_forward(self.model, self.data)
 
     # ------------------------------------------------------------------ kinematic driving

@@ -7,7 +7,8 @@ figures overstate the real cost; the shares are what the README's profile table 
 shared machine, where only ratios are stable). Components are the cumulative times of their entry points:
 
 - render: ``OffscreenRenderer.render_gray`` (images) or ``project_landmarks`` (simulated features);
-- physics: ``Simulation.step``; IMU model: ``ImuModel.measure``;
+- physics: ``Simulation.step_checked`` (what ``Simulation.step`` and the scheduler call); IMU model:
+  ``ImuModel.measure``;
 - front end: the tracker's ``process``; update: ``MsckfEstimator._process`` less its propagation;
 - propagation: ``Propagator.propagate`` (per frame) and ``MsckfEstimator.estimate`` (the per-tick
   prediction to the newest IMU sample);
@@ -25,7 +26,7 @@ import pstats
 
 COMPONENTS: tuple[tuple[str, tuple[tuple[str, str], ...], tuple[tuple[str, str], ...]], ...] = (
     ("render", (("sim/render.py", "render_gray"), ("sim/landmarks.py", "project_landmarks")), ()),
-    ("physics", (("sim/simulation.py", "step"),), ()),
+    ("physics", (("sim/simulation.py", "step_checked"),), ()),
     ("IMU model", (("sim/imu_model.py", "measure"),), ()),
     ("front end", (("vio/frontend.py", "process"),), ()),
     ("update", (("vio/msckf.py", "_process"),), (("vio/propagator.py", "propagate"),)),
