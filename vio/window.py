@@ -315,7 +315,7 @@ class WindowEstimator:
 
     def _propagate(self, kf: Keyframe, t_s: float) -> tuple[ImuValues, np.ndarray]:
         """State and covariance at ``t_s`` from keyframe ``kf`` (Forster eq. 33, the factor's Jacobians)."""
-        pre = preintegrate(*self._readings(kf.t_s, t_s), kf.x, self.noise)
+        pre = preintegrate(*self._readings(kf.t_s, t_s), kf.x, self.noise, self.params.midpoint_rotation)
         xj = predict(pre, kf.x)
         return xj, predict_covariance(pre, kf.x, xj, self._cov_newest, self.noise)
 
@@ -326,7 +326,7 @@ class WindowEstimator:
         self._n_bad = 0
         # 1. Preintegrate and predict the new keyframe (Forster eq. 33).
         readings = self._readings(last.t_s, t_s)
-        pre = preintegrate(*readings, last.x, self.noise)
+        pre = preintegrate(*readings, last.x, self.noise, self.params.midpoint_rotation)
         x = predict(pre, last.x)
         obs = {int(i): xy for i, xy in zip(tracks.ids.tolist(), tracks.xy_norm, strict=True)}
         self._innovation = InnovationTest()
@@ -378,7 +378,9 @@ class WindowEstimator:
         p = self.params
         # 0. Re-integrate preintegrations whose bias moved far from its linearization point (lesson ch. 5).
         tol = (p.repropagate_gyro_bias_rad_s, p.repropagate_accel_bias_m_s2)
-        repropagate(self.links, [kf.x for kf in self.keyframes], self.noise, *tol)
+        repropagate(
+            self.links, [kf.x for kf in self.keyframes], self.noise, *tol, self.params.midpoint_rotation
+        )
         lm_ids = sorted(self.landmarks)
         pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
         obs = observations(self.keyframes, lm_ids)

@@ -48,18 +48,28 @@ def boxminus(x: ImuValues, x0: ImuValues) -> np.ndarray:
 
 
 def preintegrate(
-    t_s: np.ndarray, gyro: np.ndarray, accel: np.ndarray, x: ImuValues, noise: ImuNoise
+    t_s: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    x: ImuValues,
+    noise: ImuNoise,
+    rotate_midpoint: bool = False,
 ) -> ImuPreintegration:
     """Preintegrate readings ``(t (n,), gyro (n, 3), accel (n, 3))`` at the biases of ``x`` (midpoints).
 
     All readings at once (:class:`viotb.vio.window_batch.BatchPreintegration`; the sample-by-sample
     :meth:`ImuPreintegration.integrate` gives the same to round-off).
     """
-    return BatchPreintegration(t_s, gyro, accel, x.gyro_bias_rad_s, x.accel_bias_m_s2, noise)
+    return BatchPreintegration(t_s, gyro, accel, x.gyro_bias_rad_s, x.accel_bias_m_s2, noise, rotate_midpoint)
 
 
 def repropagate(
-    links: list[ImuLink], xs: list[ImuValues], noise: ImuNoise, gyro_tol_rad_s: float, accel_tol_m_s2: float
+    links: list[ImuLink],
+    xs: list[ImuValues],
+    noise: ImuNoise,
+    gyro_tol_rad_s: float,
+    accel_tol_m_s2: float,
+    rotate_midpoint: bool = False,
 ) -> None:
     """Re-integrate (in place) the links whose start keyframe's bias moved far from their linearization point.
 
@@ -73,7 +83,7 @@ def repropagate(
             np.linalg.norm(xi.gyro_bias_rad_s - link.pre.gyro_bias_rad_s) > gyro_tol_rad_s
             or np.linalg.norm(xi.accel_bias_m_s2 - link.pre.accel_bias_m_s2) > accel_tol_m_s2
         ):
-            link.pre = preintegrate(*link.readings, xi, noise)
+            link.pre = preintegrate(*link.readings, xi, noise, rotate_midpoint)
 
 
 def predict(pre: ImuPreintegration, x: ImuValues) -> ImuValues:
