@@ -74,11 +74,12 @@ class WindowParams:
         max_position_sigma_m: Position sigma (m) beyond which divergence is declared.
         midpoint_rotation: Turn each midpoint specific force of the preintegration by half its step's
             rotation (exact in a steady turn, ``tests/test_window_batch.py``; without it a body-frame error
-            of 1/2 [w dt]x a per step). Off by default: on 20 s KLT renders it lowers the ATE on
-            ``aggressive`` (4.36 -> 3.09 cm, NEES 30 -> 16) and ``figure8`` (3.25 -> 2.99 cm) and raises it on
-            ``circle`` (3.64 -> 3.98 cm); on simulated streams (4 seeds) circle 26.4 -> 28.4 mm, fast
-            rotation 22.0 -> 24.6 mm, aggressive 25.2 -> 21.5 mm; why a more exact integration loses on
-            turns is open.
+            of 1/2 [w dt]x a per step). On 20 s KLT renders (seeds 0 / 1, ATE cm, off -> on): aggressive
+            4.36 -> 3.09 / 3.46 -> 2.57 (NEES 30 -> 16 / 13 -> 8), head-look-around 2.66 -> 2.29 / 15.7 ->
+            9.2, figure8 2.78 -> 2.63 / 3.25 -> 2.99, hover 0.44 -> 0.41 / 0.40 -> 0.37, circle 3.39 ->
+            3.23 / 3.64 -> 3.98, head-fast-turns 2.62 -> 2.74 / 2.68 -> 2.73. On simulated streams (4
+            seeds, mean mm) aggressive 25.2 -> 21.5, figure8 18.1 -> 17.5, circle 26.4 -> 28.4, fast
+            rotation 22.0 -> 24.6.
     """
 
     window_size: int = 10
@@ -115,4 +116,4 @@ class WindowParams:
     runaway_min_features: int = 5
     blowup_keyframes: int = 5
     max_position_sigma_m: float = 100.0
-    midpoint_rotation: bool = False
+    midpoint_rotation: bool = True
