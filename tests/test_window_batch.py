@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from random_states import random_imu_values
 from viotb.vio.lie import exp_so3, log_so3, right_jacobian_inv_so3, right_jacobian_so3
 from viotb.vio.preintegration import ImuPreintegration
@@ -84,7 +85,8 @@ def test_integrate_gyro_is_the_preintegrated_rotation():
     np.testing.assert_allclose(integrate_gyro(t, gyro, x.gyro_bias_rad_s), pre.delta_R, atol=1e-12)
 
 
-def test_batch_preintegration_matches_the_sample_by_sample_recursion():
+@pytest.mark.parametrize("rotate_midpoint", [False, True])
+def test_batch_preintegration_matches_the_sample_by_sample_recursion(rotate_midpoint):
     """Increments, bias Jacobians and covariance against ImuPreintegration.integrate, with a repeated time."""
     rng = np.random.default_rng(3)
     t = np.insert(np.cumsum(rng.uniform(0.004, 0.006, 40)), 5, 0.0)
@@ -96,8 +98,9 @@ def test_batch_preintegration_matches_the_sample_by_sample_recursion():
     seq = ImuPreintegration(x.gyro_bias_rad_s, x.accel_bias_m_s2, noise)
     for k in range(40):
         if t[k + 1] > t[k]:
-            seq.integrate(0.5 * (accel[k] + accel[k + 1]), 0.5 * (gyro[k] + gyro[k + 1]), t[k + 1] - t[k])
-    batch = BatchPreintegration(t, gyro, accel, x.gyro_bias_rad_s, x.accel_bias_m_s2, noise)
+            a_mid, w_mid = 0.5 * (accel[k] + accel[k + 1]), 0.5 * (gyro[k] + gyro[k + 1])
+            seq.integrate(a_mid, w_mid, t[k + 1] - t[k], rotate_midpoint)
+    batch = BatchPreintegration(t, gyro, accel, x.gyro_bias_rad_s, x.accel_bias_m_s2, noise, rotate_midpoint)
     attrs = (
         "delta_R",
         "delta_v",

@@ -60,13 +60,19 @@ class ImuPreintegration:
         self._dp_dbg = np.zeros((3, 3))
         self._dp_dba = np.zeros((3, 3))
 
-    def integrate(self, accel_B_m_s2: np.ndarray, gyro_B_rad_s: np.ndarray, dt_s: float) -> None:
+    def integrate(
+        self, accel_B_m_s2: np.ndarray, gyro_B_rad_s: np.ndarray, dt_s: float, rotate_midpoint: bool = False
+    ) -> None:
         """Add one IMU sample held constant for ``dt_s`` seconds.
 
         Args:
             accel_B_m_s2: Raw specific force in B (m/s^2), shape (3,).
             gyro_B_rad_s: Raw angular rate in B (rad/s), shape (3,).
             dt_s: Sample duration (s), > 0.
+            rotate_midpoint: The reading is the interval's midpoint value: its bias-corrected specific force
+                is turned by half the step's rotation before it is applied at the step's start attitude
+                (otherwise a body-frame error of ``1/2 [w dt]x a`` per step; the window's batch form is
+                :class:`viotb.vio.window_batch.BatchPreintegration` with the same flag).
         """
         accel = _as_vec3(accel_B_m_s2, "accel_B_m_s2")
         gyro = _as_vec3(gyro_B_rad_s, "gyro_B_rad_s")
@@ -74,6 +80,8 @@ class ImuPreintegration:
             raise ValueError(f"dt_s must be a positive finite number of seconds, got {dt_s}")
         a = accel - self._ba
         w_dt = (gyro - self._bg) * dt_s
+        if rotate_midpoint:
+            a = exp_so3(0.5 * w_dt) @ a
         dR_step = exp_so3(w_dt)
         jr_step = right_jacobian_so3(w_dt)
         dR_a_skew = self._dR @ skew(a)
