@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from test_initialization import CALIB, _feed_synthetic
-from viotb.vio.init_dynamic import _Window, select_tracks
+from test_initialization import _synthetic_window
 from viotb.vio.init_preintegration import RunningPreintegration, preintegrate_to
-from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.lie import exp_so3
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample
 
@@ -60,11 +58,7 @@ def test_running_preintegration_reused_equals_a_fresh_one():
 def test_schur_linear_solve_matches_dense_least_squares():
     """The feature-eliminated linear alignment against ``numpy.linalg.lstsq`` on the stacked system."""
     rng = np.random.default_rng(4)
-    init = InertialInitializer(CALIB, ImuNoise(), InitParams(window_s=1.0))
-    _feed_synthetic(init, 1.0, True, np.zeros(3), rng)
-    times, tracks = select_tracks(init._window_frames(), 8, 4, 25)
-    pims, _ = preintegrate_to(list(init._imu), times, times[-1], ImuNoise())
-    win = _Window(times, tracks, pims, CALIB)
+    win = _synthetic_window(rng, 8, 4, 25)
     A_g, A_f, b = win.linear_rows()
     weights = rng.uniform(0.2, 1.0, win.n_obs)
     x = win.solve_linear(A_g, A_f, b, weights)

@@ -186,6 +186,18 @@ def _feed_synthetic(
     return None
 
 
+def _synthetic_window(rng: np.random.Generator, max_frames: int, min_obs: int, max_tracks: int):
+    """The dynamic alignment's window (``init_dynamic._Window``) over 1 s of the excited synthetic scene."""
+    from viotb.vio.init_dynamic import _Window, select_tracks
+    from viotb.vio.init_preintegration import preintegrate_to
+
+    init = InertialInitializer(CALIB, ImuNoise(), InitParams(window_s=1.0))
+    _feed_synthetic(init, 1.0, True, np.zeros(3), rng)
+    times, tracks = select_tracks(init._window_frames(), max_frames, min_obs, max_tracks)
+    pims, _ = preintegrate_to(list(init._imu), times, times[-1], ImuNoise())
+    return _Window(times, tracks, pims, CALIB)
+
+
 def test_dynamic_init_recovers_velocity_gravity_scale_and_gyro_bias():
     rng = np.random.default_rng(0)
     bg_true = np.array([0.01, -0.015, 0.02])
@@ -289,16 +301,10 @@ def test_trajectory_scale_functional_is_linear_in_the_scale():
 
 def test_refinement_jacobians_match_finite_differences():
     """The analytic reprojection Jacobians of the refinement against central differences."""
-    from viotb.vio.init_dynamic import _Window, select_tracks
-    from viotb.vio.init_preintegration import preintegrate_to
     from viotb.vio.init_refine import reprojection
 
     rng = np.random.default_rng(1)
-    init = InertialInitializer(CALIB, ImuNoise(), InitParams(window_s=1.0))
-    _feed_synthetic(init, 1.0, True, np.zeros(3), rng)
-    times, tracks = select_tracks(init._window_frames(), 6, 4, 10)
-    pims, _ = preintegrate_to(list(init._imu), times, times[-1], ImuNoise())
-    win = _Window(times, tracks, pims, CALIB)
+    win = _synthetic_window(rng, 6, 4, 10)
     R_g = Rotation.from_rotvec([0.1, -0.2, 0.05]).as_matrix()
     pf = rng.uniform(3.0, 6.0, (win.n_f, 3)) * [1.0, 0.3, 0.3]
     for bg_on in (0.0, 1.0):
