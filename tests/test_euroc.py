@@ -266,12 +266,21 @@ def test_bad_yaml_fields(small_copy):
         read_euroc(small_copy)
 
 
-def test_load_image_index_and_8bit(small_copy, tmp_path):
+def test_load_image_index_16bit_and_float(small_copy, tmp_path):
     ds = read_euroc(small_copy)
     with pytest.raises(IndexError, match="out of range"):
         load_image(ds, 5)
+    original = load_image(ds, 1)
     path = ds.image_paths[1]
     path.unlink()
-    cv2.imwrite(str(path), np.zeros((480, 752), np.uint16))
-    with pytest.raises(ValueError, match="expected an 8-bit image"):
+    # A 16-bit PNG as TUM-VI's EuRoC export writes it (8-bit value v stored as 257 v, plus low-byte noise).
+    low = np.random.default_rng(0).integers(0, 256, original.shape)
+    cv2.imwrite(str(path), (original.astype(np.uint16) * 256 + low.astype(np.uint16)))
+    np.testing.assert_array_equal(load_image(ds, 1), original)
+    # A float image (a TIFF under a .png name: OpenCV decodes by content) is refused, naming the dtype.
+    path.unlink()
+    ok, tiff = cv2.imencode(".tiff", original.astype(np.float32))
+    assert ok
+    path.write_bytes(tiff.tobytes())
+    with pytest.raises(ValueError, match="expected an 8-bit or 16-bit image, got dtype float32"):
         load_image(ds, 1)

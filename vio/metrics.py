@@ -125,22 +125,49 @@ def associate(t_est: np.ndarray, t_gt: np.ndarray, max_dt_s: float = 0.01) -> tu
     return np.flatnonzero(ok), pick[ok]
 
 
-def interpolate_trajectory(traj: TrajectoryArrays, t_s: np.ndarray) -> tuple[TrajectoryArrays, np.ndarray]:
+def ground_truth_gaps(t_ref_s: np.ndarray, max_gap_s: float | None = None) -> np.ndarray:
+    """Indices ``i`` where ground truth has a gap ``t_ref_s[i] .. t_ref_s[i + 1]`` too long to interpolate.
+
+    Motion capture drops out (occlusions) or covers only part of a run (TUM-VI's corridors: the start and
+    the end); a straight line across a gap would be scored as if it were truth.
+
+    Args:
+        t_ref_s: Ground-truth stamps (s), shape (M,), strictly increasing.
+        max_gap_s: Longest interval (s) interpolated across; default ``max(0.25 s, 10 x the median
+            interval)``, so a 200 Hz mocap bridges a 50 ms dropout and a 1 Hz truth still interpolates.
+
+    Returns:
+        Integer indices (K,) of the gaps' first samples.
+    """
+    dt = np.diff(np.asarray(t_ref_s, dtype=float))
+    if dt.size == 0:
+        return np.zeros(0, dtype=int)
+    limit = max(0.25, 10.0 * float(np.median(dt))) if max_gap_s is None else float(max_gap_s)
+    return np.flatnonzero(dt > limit)
+
+
+def interpolate_trajectory(
+    traj: TrajectoryArrays, t_s: np.ndarray, max_gap_s: float | None = None
+) -> tuple[TrajectoryArrays, np.ndarray]:
     """Ground truth at arbitrary times: linear positions/velocities, slerp orientations.
 
     Args:
         traj: Trajectory with strictly increasing ``t_s``.
         t_s: Query times (s), shape (N,).
+        max_gap_s: Query times inside a ground-truth gap longer than this are outside
+            (:func:`ground_truth_gaps`, whose default this shares).
 
     Returns:
-        ``(interpolated, inside)``: the trajectory at the query times inside ``traj``'s time span, and the
-        boolean mask (N,) of which query times were inside.
+        ``(interpolated, inside)``: the trajectory at the query times inside ``traj``'s time span and not
+        in one of its gaps, and the boolean mask (N,) of which query times were inside.
     """
     t_ref = np.asarray(traj.t_s, dtype=float)
     if t_ref.size < 2 or np.any(np.diff(t_ref) <= 0.0):
         raise ValueError("interpolation needs a trajectory with >= 2 strictly increasing timestamps")
     t_q = np.asarray(t_s, dtype=float)
     inside = (t_q >= t_ref[0]) & (t_q <= t_ref[-1])
+    for i in ground_truth_gaps(t_ref, max_gap_s):
+        inside &= ~((t_q > t_ref[i]) & (t_q < t_ref[i + 1]))
     tq = t_q[inside]
     p = np.column_stack([np.interp(tq, t_ref, traj.p_WB[:, k]) for k in range(3)])
     rots = Rotation.from_quat(np.roll(np.asarray(traj.quat_wxyz_WB, dtype=float), -1, axis=1))

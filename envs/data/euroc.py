@@ -2,13 +2,14 @@
 
 Layout (Burri et al., "The EuRoC micro aerial vehicle datasets", IJRR 2016)::
 
-    mav0/cam0/data/<t_ns>.png           8-bit grayscale images
+    mav0/cam0/data/<t_ns>.png           8-bit (or 16-bit, read as its high byte) grayscale images
     mav0/cam0/data.csv                  #timestamp [ns],filename
     mav0/cam0/sensor.yaml               intrinsics [fu, fv, cu, cv], radtan or equi distortion, T_BS, rate_hz
     mav0/cam1/...                       the right camera of a stereo rig, same layout, its own T_BS (optional)
     mav0/imu0/data.csv                  #timestamp [ns],w_RS_S_x [rad s^-1],...,a_RS_S_z [m s^-2]
     mav0/imu0/sensor.yaml               Kalibr noise densities, rate_hz
     mav0/state_groundtruth_estimate0/data.csv   t, p xyz, q wxyz, v xyz, bw xyz, ba xyz (optional)
+    mav0/mocap0/data.csv, mav0/vicon0/data.csv  t, p xyz, q wxyz: pose-only ground truth (TUM-VI, raw EuRoC)
     mav0/sim_landmarks0/data.csv        #id,p_x [m],p_y [m],p_z [m] (our extension, optional)
 
 The camera model is read with :func:`viotb.vio.camera.camera_from_kalibr`, so Kalibr ``pinhole-radtan`` and
@@ -26,7 +27,17 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
+from viotb.envs.data.euroc_files import (
+    ns_to_s,
+    parse_floats,
+    parse_ns,
+    read_numeric_csv,
+    read_rows,
+    read_yaml,
+    yaml_field,
+    yaml_number,
+)
+from viotb.envs.data.euroc_truth import read_groundtruth
 from viotb.envs.data.validate import check_camera_ranges, check_imu_ranges
 from viotb.vio.camera import CameraCalibration, camera_from_kalibr
 from viotb.vio.types import ImuNoise, ImuSeries, TrajectoryArrays
@@ -68,6 +79,7 @@ class EurocDataset:
         cam1_t_s: ``cam1`` stamps (s, camera clock), shape (F1,), or None.
         cam1_t_ns: ``cam1`` stamps (ns), int64, or None.
         image_paths_right: PNG path of each ``cam1`` frame (empty without ``cam1``).
+        groundtruth_source: The folder the ground truth came from (:mod:`.euroc_truth`), or None.
     """
 
     root: Path
@@ -88,6 +100,7 @@ class EurocDataset:
     cam1_t_s: np.ndarray | None = None
     cam1_t_ns: np.ndarray | None = None
     image_paths_right: tuple[Path, ...] = ()
+    groundtruth_source: str | None = None
 
     @property
     def has_stereo(self) -> bool:
@@ -123,81 +136,22 @@ def _resolve_mav0(path: Path) -> Path:
     raise FileNotFoundError(f"no mav0 folder (with cam0/ and imu0/) in {path}")
 
 
-def _require_file(path: Path) -> Path:
-    if not path.is_file():
-        raise FileNotFoundError(f"missing EuRoC file: {path}")
-    return path
-
-
-class _SensorYamlLoader(yaml.SafeLoader):
-    """PyYAML's safe loader that also reads OpenCV's ``!!opencv-matrix`` tag (a mapping with ``data``)."""
-
-
-_SensorYamlLoader.add_constructor(
-    "tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True)
-)
-
-
-def _read_yaml(path: Path) -> dict:
-    """Parse a sensor.yaml, tolerating OpenCV's ``%YAML:1.0`` first line and ``!!opencv-matrix`` tags."""
-    text = _require_file(path).read_text()
-    lines = text.splitlines()
-    if lines and lines[0].startswith("%YAML"):
-        lines = lines[1:]
-    try:
-        data = yaml.load("\n".join(lines), Loader=_SensorYamlLoader)  # a SafeLoader subclass
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: malformed YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a YAML mapping, got {type(data).__name__}")
-    return data
-
-
-def _yaml_field(data: dict, path: Path, key: str, length: int | None = None) -> object:
-    if key not in data:
-        raise ValueError(f"{path}: missing field {key!r}")
-    value = data[key]
-    if isinstance(value, dict) and "data" in value and length is not None:
-        value = value["data"]  # an OpenCV matrix (``!!opencv-matrix``) holding the list
-    if length is not None:
-        if not isinstance(value, list) or len(value) != length:
-            raise ValueError(f"{path}: field {key!r} must be a list of {length} numbers, got {value!r}")
-        try:
-            value = [float(v) for v in value]
-        except (TypeError, ValueError):
-            raise ValueError(f"{path}: field {key!r} must hold numbers, got {data[key]!r}") from None
-        if not all(np.isfinite(value)):
-            raise ValueError(f"{path}: field {key!r} has non-finite values: {value!r}")
-    return value
-
-
-def _yaml_number(data: dict, path: Path, key: str) -> float:
-    value = _yaml_field(data, path, key)
-    try:
-        number = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{path}: field {key!r} must be a number, got {value!r}") from None
-    if not np.isfinite(number):
-        raise ValueError(f"{path}: field {key!r} must be finite, got {value!r}")
-    return number
-
-
 def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
-    data = _read_yaml(path)
+    data = read_yaml(path)
     # OpenCV-written files hold lists as ``!!opencv-matrix`` mappings: give the camera model their ``data``.
     lists = {k: v["data"] for k, v in data.items() if isinstance(v, dict) and "data" in v and k != "T_BS"}
     camera = camera_from_kalibr({**data, **lists}, str(path))
-    t_bs = _yaml_field(data, path, "T_BS")
+    t_bs = yaml_field(data, path, "T_BS")
     if not isinstance(t_bs, dict):
         raise ValueError(f"{path}: field 'T_BS' must be a mapping with 'data', got {t_bs!r}")
-    T = np.array(_yaml_field(t_bs, path, "data", 16)).reshape(4, 4)  # type: ignore[arg-type]
+    T = np.array(yaml_field(t_bs, path, "data", 16)).reshape(4, 4)  # type: ignore[arg-type]
     R_BC = T[:3, :3]
     if not np.allclose(R_BC.T @ R_BC, np.eye(3), atol=1e-5) or np.linalg.det(R_BC) < 0.0:
         raise ValueError(f"{path}: T_BS rotation block is not a rotation matrix: {R_BC.tolist()}")
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
         raise ValueError(f"{path}: T_BS last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    rate_hz = _yaml_number(data, path, "rate_hz")
-    offset_s = _yaml_number(data, path, "timeshift_cam_imu") if "timeshift_cam_imu" in data else 0.0
+    rate_hz = yaml_number(data, path, "rate_hz")
+    offset_s = yaml_number(data, path, "timeshift_cam_imu") if "timeshift_cam_imu" in data else 0.0
     intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
     check_camera_ranges(path, intrinsics, (camera.width, camera.height), rate_hz, offset_s)
     calib = CameraCalibration(camera, R_BC.copy(), T[:3, 3].copy(), offset_s, rate_hz)
@@ -205,89 +159,19 @@ def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
 
 
 def _read_imu_yaml(path: Path) -> tuple[ImuNoise, float]:
-    data = _read_yaml(path)
+    data = read_yaml(path)
     keys = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density")
-    densities = {key: _yaml_number(data, path, key) for key in (*keys, "accelerometer_random_walk")}
-    rate_hz = _yaml_number(data, path, "rate_hz")
+    densities = {key: yaml_number(data, path, key) for key in (*keys, "accelerometer_random_walk")}
+    rate_hz = yaml_number(data, path, "rate_hz")
     check_imu_ranges(path, densities, rate_hz)
     return ImuNoise(*densities.values()), rate_hz
-
-
-def _read_rows(path: Path, n_cols: int) -> tuple[list[int], list[list[str]]]:
-    """Data rows of a EuRoC CSV as (1-based line numbers, stripped fields); checks the column count."""
-    line_numbers: list[int] = []
-    rows: list[list[str]] = []
-    with _require_file(path).open("r", newline="") as handle:
-        for line_no, line in enumerate(handle, start=1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            fields = [f.strip() for f in text.split(",")]
-            if len(fields) != n_cols:
-                raise ValueError(
-                    f"{path}, line {line_no}: expected {n_cols} comma-separated values, "
-                    f"got {len(fields)}: {text!r}"
-                )
-            line_numbers.append(line_no)
-            rows.append(fields)
-    if not rows:
-        raise ValueError(f"{path}: no data rows")
-    return line_numbers, rows
-
-
-def _parse_ns(path: Path, line_numbers: list[int], column: list[str]) -> np.ndarray:
-    out = np.empty(len(column), dtype=np.int64)
-    for i, text in enumerate(column):
-        try:
-            out[i] = int(text)
-        except ValueError:
-            raise ValueError(
-                f"{path}, line {line_numbers[i]}: timestamp must be an integer (ns), got {text!r}"
-            ) from None
-    diffs = np.diff(out)
-    bad = np.flatnonzero(diffs <= 0)
-    if bad.size:
-        i = int(bad[0])
-        kind = "duplicate" if diffs[i] == 0 else "non-monotonic"
-        raise ValueError(
-            f"{path}, lines {line_numbers[i]}-{line_numbers[i + 1]}: {kind} timestamps "
-            f"{out[i]} then {out[i + 1]} (must strictly increase)"
-        )
-    return out
-
-
-def _parse_floats(path: Path, line_numbers: list[int], rows: list[list[str]]) -> np.ndarray:
-    out = np.empty((len(rows), len(rows[0])))
-    for i, row in enumerate(rows):
-        for j, text in enumerate(row):
-            try:
-                value = float(text)
-            except ValueError:
-                where = f"{path}, line {line_numbers[i]}, column {j + 2}"
-                raise ValueError(f"{where}: not a number: {text!r}") from None
-            if not np.isfinite(value):
-                raise ValueError(f"{path}, line {line_numbers[i]}, column {j + 2}: non-finite value {text!r}")
-            out[i, j] = value
-    return out
-
-
-def _read_numeric_csv(path: Path, n_cols: int) -> tuple[np.ndarray, np.ndarray]:
-    """(timestamps ns (N,), values (N, n_cols - 1)) of a numeric EuRoC CSV."""
-    line_numbers, rows = _read_rows(path, n_cols)
-    t_ns = _parse_ns(path, line_numbers, [r[0] for r in rows])
-    values = _parse_floats(path, line_numbers, [r[1:] for r in rows])
-    return t_ns, values
-
-
-def _ns_to_s(t_ns: np.ndarray) -> np.ndarray:
-    return t_ns.astype(np.float64) * 1e-9
 
 
 def _read_camera_csv(root: Path, cam: str) -> tuple[np.ndarray, tuple[Path, ...]]:
     """Stamps (ns) and image paths of ``root/cam/data.csv`` (every image must exist)."""
     cam_csv = root / cam / "data.csv"
-    cam_lines, cam_rows = _read_rows(cam_csv, 2)
-    cam_t_ns = _parse_ns(cam_csv, cam_lines, [r[0] for r in cam_rows])
+    cam_lines, cam_rows = read_rows(cam_csv, 2)
+    cam_t_ns = parse_ns(cam_csv, cam_lines, [r[0] for r in cam_rows])
     image_paths = []
     for line_no, (_, name) in zip(cam_lines, cam_rows, strict=True):
         image = root / cam / "data" / name
@@ -309,9 +193,9 @@ def read_euroc(path: Path | str) -> EurocDataset:
     imu_noise, imu_rate_hz = _read_imu_yaml(root / "imu0" / "sensor.yaml")
 
     imu_path = root / "imu0" / "data.csv"
-    imu_t_ns, imu_values = _read_numeric_csv(imu_path, 7)
+    imu_t_ns, imu_values = read_numeric_csv(imu_path, 7)
     imu = ImuSeries(
-        _ns_to_s(imu_t_ns),
+        ns_to_s(imu_t_ns),
         imu_values[:, :3].copy(),
         imu_values[:, 3:].copy(),
         np.zeros(len(imu_t_ns), dtype=bool),
@@ -324,44 +208,32 @@ def read_euroc(path: Path | str) -> EurocDataset:
         calib_right, _, _ = _read_camera_yaml(root / "cam1" / "sensor.yaml")
         cam1_t_ns, image_paths_right = _read_camera_csv(root, "cam1")
 
-    groundtruth = gt_bw = gt_ba = gt_t_ns = None
-    gt_path = root / "state_groundtruth_estimate0" / "data.csv"
-    if gt_path.exists():
-        gt_t_ns, gt = _read_numeric_csv(gt_path, 17)
-        quat = gt[:, 3:7]
-        norms = np.linalg.norm(quat, axis=1)
-        bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
-        if bad.size:
-            row = int(bad[0])
-            raise ValueError(f"{gt_path}: quaternion of data row {row + 1} has norm {norms[row]:.6f}")
-        groundtruth = TrajectoryArrays(
-            _ns_to_s(gt_t_ns), gt[:, 0:3].copy(), quat / norms[:, None], gt[:, 7:10].copy()
-        )
-        gt_bw, gt_ba = gt[:, 10:13].copy(), gt[:, 13:16].copy()
+    truth = read_groundtruth(root)
 
     landmarks = None
     lm_path = root / "sim_landmarks0" / "data.csv"
     if lm_path.exists():
-        lm_lines, lm_rows = _read_rows(lm_path, 4)
-        landmarks = _parse_floats(lm_path, lm_lines, [r[1:] for r in lm_rows])
+        lm_lines, lm_rows = read_rows(lm_path, 4)
+        landmarks = parse_floats(lm_path, lm_lines, [r[1:] for r in lm_rows])
 
     return EurocDataset(
         root=root,
         imu=imu,
-        cam_t_s=_ns_to_s(cam_t_ns),
+        cam_t_s=ns_to_s(cam_t_ns),
         image_paths=image_paths,
         calib=calib,
         imu_noise=imu_noise,
         imu_rate_hz=imu_rate_hz,
-        groundtruth=groundtruth,
-        gt_gyro_bias=gt_bw,
-        gt_accel_bias=gt_ba,
+        groundtruth=None if truth is None else truth.trajectory,
+        gt_gyro_bias=None if truth is None else truth.gyro_bias_rad_s,
+        gt_accel_bias=None if truth is None else truth.accel_bias_m_s2,
         landmarks_W=landmarks,
         imu_t_ns=imu_t_ns,
         cam_t_ns=cam_t_ns,
-        gt_t_ns=gt_t_ns,
+        gt_t_ns=None if truth is None else truth.t_ns,
+        groundtruth_source=None if truth is None else truth.source,
         calib_right=calib_right,
-        cam1_t_s=None if cam1_t_ns is None else _ns_to_s(cam1_t_ns),
+        cam1_t_s=None if cam1_t_ns is None else ns_to_s(cam1_t_ns),
         cam1_t_ns=cam1_t_ns,
         image_paths_right=image_paths_right,
     )
@@ -375,8 +247,8 @@ def load_image(dataset: EurocDataset, index: int, camera: int = 0) -> np.ndarray
     Raises:
         IndexError: Index out of range.
         FileNotFoundError: The PNG is missing.
-        ValueError: No such camera, the PNG cannot be decoded, is not 8-bit, or its size differs from the YAML
-            resolution.
+        ValueError: No such camera, the PNG cannot be decoded, is neither 8- nor 16-bit, or its size differs
+            from the YAML resolution.
     """
     if camera not in (0, 1):
         raise ValueError(f"camera must be 0 or 1, got {camera!r}")
@@ -394,8 +266,10 @@ def load_image(dataset: EurocDataset, index: int, camera: int = 0) -> np.ndarray
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ValueError(f"{path}: cannot decode image (corrupt or not a PNG)")
-    if image.dtype != np.uint8:
-        raise ValueError(f"{path}: expected an 8-bit image, got dtype {image.dtype}")
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)  # 16-bit PNGs (TUM-VI's EuRoC export): keep the high byte
+    elif image.dtype != np.uint8:
+        raise ValueError(f"{path}: expected an 8-bit or 16-bit image, got dtype {image.dtype}")
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)

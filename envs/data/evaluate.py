@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from viotb.envs.data import diagnosis
 from viotb.envs.data.euroc import EurocDataset, read_euroc
+from viotb.envs.data.euroc_truth import GROUNDTRUTH_SOURCES
 from viotb.envs.data.eval_frames import (
     apply_imu_gap_policy,
     camera_frame,
@@ -60,8 +61,8 @@ def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | No
         raise ValueError(f"{ds.root}: --cameras 2 needs a cam1 folder (this dataset is mono)")
     if opts.estimator == "ground-truth" and ds.groundtruth is None:
         raise ValueError(
-            f"{ds.root}: the ground-truth estimator needs state_groundtruth_estimate0/data.csv, "
-            "which this dataset does not have"
+            f"{ds.root}: the ground-truth estimator needs ground truth (one of "
+            f"{', '.join(s + '/data.csv' for s in GROUNDTRUTH_SOURCES)}), which this dataset does not have"
         )
     # The stereo keyword goes only to a stereo run, so mono runs do not depend on the stereo estimators.
     stereo = {"calib_right": ds.calib_right} if opts.cameras == 2 else {}
@@ -196,11 +197,16 @@ def evaluate_dataset(
                 "(before initialization, or after a divergence)"
             )
         if ds.groundtruth is None:
-            notes.append("no ground truth (state_groundtruth_estimate0/data.csv): no accuracy metrics")
+            notes.append(
+                f"no ground truth ({' / '.join(s + '/data.csv' for s in GROUNDTRUTH_SOURCES)}): "
+                "no accuracy metrics"
+            )
         elif len(estimates) < 2:
             notes.append(f"only {len(estimates)} estimate(s): no accuracy metrics")
         else:
             gt = ds.groundtruth
+            if ds.groundtruth_source != GROUNDTRUTH_SOURCES[0]:
+                notes.append(f"ground truth: {ds.groundtruth_source}/data.csv (pose only)")
             mask = (gt.t_s >= est_traj.t_s[0]) & (gt.t_s <= est_traj.t_s[-1])
             gt_span = TrajectoryArrays(gt.t_s[mask], gt.p_WB[mask], gt.quat_wxyz_WB[mask])
             write_tum(tmp_dir / "groundtruth_tum.txt", gt_span)
