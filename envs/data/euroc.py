@@ -33,8 +33,8 @@ from viotb.envs.data.euroc_files import (
     parse_ns,
     read_numeric_csv,
     read_rows,
+    read_T_BS,
     read_yaml,
-    yaml_field,
     yaml_number,
 )
 from viotb.envs.data.euroc_truth import read_groundtruth
@@ -141,15 +141,8 @@ def _read_camera_yaml(path: Path) -> tuple[CameraCalibration, int, int]:
     # OpenCV-written files hold lists as ``!!opencv-matrix`` mappings: give the camera model their ``data``.
     lists = {k: v["data"] for k, v in data.items() if isinstance(v, dict) and "data" in v and k != "T_BS"}
     camera = camera_from_kalibr({**data, **lists}, str(path))
-    t_bs = yaml_field(data, path, "T_BS")
-    if not isinstance(t_bs, dict):
-        raise ValueError(f"{path}: field 'T_BS' must be a mapping with 'data', got {t_bs!r}")
-    T = np.array(yaml_field(t_bs, path, "data", 16)).reshape(4, 4)  # type: ignore[arg-type]
+    T = read_T_BS(data, path)
     R_BC = T[:3, :3]
-    if not np.allclose(R_BC.T @ R_BC, np.eye(3), atol=1e-5) or np.linalg.det(R_BC) < 0.0:
-        raise ValueError(f"{path}: T_BS rotation block is not a rotation matrix: {R_BC.tolist()}")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError(f"{path}: T_BS last row must be [0, 0, 0, 1], got {T[3].tolist()}")
     rate_hz = yaml_number(data, path, "rate_hz")
     offset_s = yaml_number(data, path, "timeshift_cam_imu") if "timeshift_cam_imu" in data else 0.0
     intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)

@@ -78,6 +78,25 @@ def yaml_number(data: dict, path: Path, key: str) -> float:
     return number
 
 
+def read_T_BS(data: dict, path: Path) -> np.ndarray:
+    """The ``T_BS`` field (4, 4) of a parsed ``sensor.yaml``: sensor frame S in the body (IMU) frame B.
+
+    Raises:
+        ValueError: Missing or malformed, a rotation block that is not a rotation, or a last row other than
+            ``[0, 0, 0, 1]`` (the message names the file and the value).
+    """
+    t_bs = yaml_field(data, path, "T_BS")
+    if not isinstance(t_bs, dict):
+        raise ValueError(f"{path}: field 'T_BS' must be a mapping with 'data', got {t_bs!r}")
+    T = np.array(yaml_field(t_bs, path, "data", 16)).reshape(4, 4)  # type: ignore[arg-type]
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0.0:
+        raise ValueError(f"{path}: T_BS rotation block is not a rotation matrix: {R.tolist()}")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"{path}: T_BS last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    return T
+
+
 def read_rows(path: Path, n_cols: int) -> tuple[list[int], list[list[str]]]:
     """Data rows of a EuRoC CSV as (1-based line numbers, stripped fields); checks the column count."""
     line_numbers: list[int] = []

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from viotb.envs.data.euroc_files import ns_to_s, read_numeric_csv, read_yaml, yaml_field
+from viotb.envs.data.euroc_files import ns_to_s, read_numeric_csv, read_T_BS, read_yaml
 from viotb.vio.lie import quat_wxyz_to_rotmat, rotmat_to_quat_wxyz
 from viotb.vio.types import TrajectoryArrays
 
@@ -66,16 +66,7 @@ def _sensor_T_BS(folder: Path) -> np.ndarray:
     data = read_yaml(path)
     if "T_BS" not in data:
         return np.eye(4)
-    t_bs = data["T_BS"]
-    if not isinstance(t_bs, dict):
-        raise ValueError(f"{path}: field 'T_BS' must be a mapping with 'data', got {t_bs!r}")
-    T = np.array(yaml_field(t_bs, path, "data", 16)).reshape(4, 4)  # type: ignore[arg-type]
-    R = T[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0.0:
-        raise ValueError(f"{path}: T_BS rotation block is not a rotation matrix: {R.tolist()}")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError(f"{path}: T_BS last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    return T
+    return read_T_BS(data, path)
 
 
 def _read_state(path: Path) -> GroundTruth:
