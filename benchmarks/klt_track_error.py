@@ -19,7 +19,7 @@ of the feature per frame (does the slide follow motion or time?).
 
 Usage::
 
-    python benchmarks/klt_track_error.py RECORDING_DIR SCENARIO [--max-frames N] [--json]
+    python benchmarks/klt_track_error.py RECORDING_DIR SCENARIO [--max-frames N] [--json] [--anchor]
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def _mad_var(x: np.ndarray) -> float:
 
 
 def track_errors(
-    rec: Path, scenario: str, max_frames: int | None = None, edge_px: float = 3.0
+    rec: Path, scenario: str, max_frames: int | None = None, edge_px: float = 3.0, anchor: bool = False
 ) -> tuple[dict[int, np.ndarray], dict[int, float]]:
     """KLT error of every track against the true projection of its first 3-D point.
 
@@ -48,6 +48,7 @@ def track_errors(
         scenario: The scenario it was recorded from (its scene is ray cast).
         max_frames: Frames to use (None: all).
         edge_px: Offset (px) of the four neighbour rays that measure the depth step around a first point.
+        anchor: Track with ``KltParams.anchor_templates`` (drift correction against the first template).
 
     Returns:
         ``(errors, depth_step)``: track id -> array (n, 5) of frame index, e_u, e_v (px), u, v of the KLT
@@ -61,7 +62,7 @@ def track_errors(
     from viotb.envs.scenarios.registry import get_scenario
     from viotb.envs.sim.simulation import Simulation
     from viotb.models.constants import VEHICLE_BODIES
-    from viotb.vio.frontend import KltTracker
+    from viotb.vio.frontend import KltParams, KltTracker
     from viotb.vio.types import CameraFrame
 
     ds = read_euroc(rec)
@@ -70,7 +71,7 @@ def track_errors(
     body = mujoco.mj_name2id(sim.model, mujoco.mjtObj.mjOBJ_BODY, VEHICLE_BODIES[sc.vehicle])
     mujoco.mj_forward(sim.model, sim.data)
     cam = ds.calib.camera
-    trk = KltTracker(cam)
+    trk = KltTracker(cam, KltParams(anchor_templates=anchor))
     n = len(ds.cam_t_s) if max_frames is None else min(max_frames, len(ds.cam_t_s))
     point: dict[int, np.ndarray | None] = {}
     step: dict[int, float] = {}
@@ -189,8 +190,9 @@ def main() -> None:
     ap.add_argument("scenario")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--anchor", action="store_true", help="KltParams.anchor_templates (drift correction)")
     a = ap.parse_args()
-    res = fit_noise(track_errors(a.recording, a.scenario, a.max_frames)[0])
+    res = fit_noise(track_errors(a.recording, a.scenario, a.max_frames, anchor=a.anchor)[0])
     if a.json:
         print(json.dumps(res, indent=1))
         return

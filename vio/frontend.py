@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from viotb.vio.camera import PinholeCamera
 from viotb.vio.feature_database import FeatureDatabase
+from viotb.vio.klt_anchor import TemplateAnchors
 from viotb.vio.types import CameraFrame
 
 __all__ = [
@@ -117,6 +118,11 @@ class KltParams:
             (320x240, f = 120 px): 0.015-0.03 px^2/px on ``figure8`` and ``aggressive`` (per frame the two
             differ 5x: 0.034 and 0.18 px^2, so image motion is the better clock), 0.003 on ``hover``;
             the white part is ~0.1 px, below the filter's 1 px.
+        anchor_templates: Refine every frame-to-frame position by aligning the track's first-frame template
+            (drift correction, :mod:`viotb.vio.klt_anchor`); a refinement that fails takes the template anew.
+        anchor_half_size_px: Half side (px) of the anchor templates.
+        anchor_max_shift_px: Largest accepted refinement (px) away from the frame-to-frame position.
+        anchor_min_zncc: Smallest accepted normalized cross-correlation of an aligned template.
     """
 
     max_features: int = 180
@@ -133,6 +139,10 @@ class KltParams:
     ransac_confidence: float = 0.99
     border_px: float = 3.0
     track_random_walk_px2_per_px: float = 0.025
+    anchor_templates: bool = False
+    anchor_half_size_px: int = 5
+    anchor_max_shift_px: float = 2.0
+    anchor_min_zncc: float = 0.85
 
 
 class KltTracker:
@@ -158,6 +168,15 @@ class KltTracker:
         self._focal_px = 0.5 * (camera.fx + camera.fy)
         self._dist = np.array(camera.distortion, dtype=float)
         self._undistort_criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
+        self._anchors = self._new_anchors()
+
+    def _new_anchors(self) -> TemplateAnchors | None:
+        p = self.params
+        if not p.anchor_templates:
+            return None
+        return TemplateAnchors(
+            p.anchor_half_size_px, max_shift_px=p.anchor_max_shift_px, min_zncc=p.anchor_min_zncc
+        )
 
     def undistort(self, uv_px: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) -> undistorted normalized coordinates (N, 2).
@@ -200,6 +219,7 @@ class KltTracker:
         self._prev_pts = np.zeros((0, 2), dtype=np.float32)
         self._prev_ids = np.zeros(0, dtype=np.int64)
         self._prev_xy = np.zeros((0, 2))
+        self._anchors = self._new_anchors()
 
     def _track(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """KLT from the previous frame with forward-backward check and RANSAC.
@@ -229,6 +249,10 @@ class KltTracker:
             fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts[fwd], axis=1)
             good[fwd] = (st2.ravel() == 1) & (fb < p.fb_max_error_px)
         pts, ids, xy_prev = p1[good], self._prev_ids[good], self._prev_xy[good]
+        if self._anchors is not None and len(pts):
+            refined, anchored = self._anchors.refine(img, ids, pts)
+            self._anchors.take(img, ids[~anchored], refined[~anchored])
+            pts = refined.astype(np.float32)
         xy = self.undistort(pts)
         if len(pts) >= 8:
             a = xy_prev * self._focal_px
@@ -312,6 +336,10 @@ class KltTracker:
             pts = np.vstack([pts, new]).astype(np.float32)
             ids = np.concatenate([ids, new_ids])
             xy = np.vstack([xy, self.undistort(new)])
+            if self._anchors is not None:
+                self._anchors.take(img, new_ids, new)
+        if self._anchors is not None:
+            self._anchors.keep_only(ids)
         self._prev_img, self._prev_pts, self._prev_ids = img, pts.astype(np.float32), ids
         self._prev_xy = xy
         return Tracks(frame.t_s, t_imu_s, ids, xy, pts.astype(float))
