@@ -42,8 +42,7 @@ wrong baseline and confirms the wrong velocity (measured: error 9 cm/s, sigma 1 
 in the thousands). A loop closer that relocalizes the returning frames against the map made before the
 loss measures the coasted pose's drift at each loop, and its rate is the velocity error; given one, the
 coasted state takes it as an EKF velocity measurement (its tilt and accelerometer bias follow through the
-coasted correlations; its position does not: the map has placed it already, see :meth:`velocity_fix`) and
-the hand-over, held back for it up to ``max_wait_s`` after the features are back,
+coasted correlations) and the hand-over, held back for it up to ``max_wait_s`` after the features are back,
 seeds the new filter with it.
 
 A non-finite or out-of-order IMU sample still raises ``ValueError`` from :meth:`feed_imu`: a failed sensor is
@@ -62,7 +61,7 @@ from viotb.vio.initialization import InitResult
 from viotb.vio.lifecycle import track_conditions
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.propagator import Propagator
-from viotb.vio.state import IMU_BLOCK, IMU_DIM, POS, VEL, ImuValues, State, ekf_update, marginal_covariance
+from viotb.vio.state import IMU_BLOCK, VEL, ImuValues, State, ekf_update, marginal_covariance
 from viotb.vio.types import CameraFrame, Estimator, HealthStatus, ImuNoise, ImuSample, StateEstimate
 
 RECOVERABLE_ESTIMATORS = ("msckf", "window")
@@ -372,23 +371,10 @@ class RecoveringEstimator:
             raise ValueError(f"velocity_fix: dv (3,) and cov (3, 3) must be finite, got {dv} and {cov}")
         if not self.wants_velocity_fix:
             return False
-        # Schmidt (consider) update, the position held: the map's correction was measured on the coasted
-        # positions, so moving them through their correlation with the velocity counts it twice (a 9.8 cm/s
-        # fix moved the pose 21 cm, KLT seed 5, which then stayed off). With the gain's position rows zero
-        # the Joseph form is the ordinary ``P - K S K^T`` but for ``P_pp``, unchanged (Simon 2006, 7.4).
         st = self._coaster.state
-        if st.dim != IMU_DIM:
-            raise ValueError(f"velocity_fix: the coasted state must be the IMU block alone, dim {st.dim}")
         H = np.zeros((3, st.dim))
         H[:, st.block(IMU_BLOCK).offset + VEL + np.arange(3)] = np.eye(3)
-        P = st.cov.copy()
-        dx = ekf_update(st, H, dv, cov)  # the ordinary update; then the position is given back
-        pos = slice(POS, POS + 3)
-        P_fixed = st.cov.copy()
-        P_fixed[pos, pos] = P[pos, pos]
-        vals = st.imu.copy()
-        vals.p_WB = vals.p_WB - dx[pos]
-        self._coaster.state = State(st.t_s, vals, P_fixed, st.R_BC, st.p_BC, st.time_offset_s)
+        ekf_update(st, H, dv, cov)
         self._fixed = True
         return True
 
