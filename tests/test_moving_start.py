@@ -80,7 +80,7 @@ def test_moving_start_initializes_dynamically_against_truth(aggressive_start):
 
     It starts 1.8 s after the first image (on all 20 seeds of the benchmark), when the reported scale sigma
     first drops below 0.67 %; the scale error is within 3 of its sigmas (the sigma is honest: over 20
-    seeds the largest ratio is 1.35).
+    seeds the largest ratio is 1.54, the RMS 0.69).
     """
     check = aggressive_start
     assert check.method == "dynamic" and check.delay_s < 2.0
@@ -92,7 +92,7 @@ def test_moving_start_initializes_dynamically_against_truth(aggressive_start):
 
 
 def test_moving_start_gravity_direction_within_2_deg(aggressive_start):
-    """The gravity direction of that start (0.5 deg here; up to 2.1 deg, 2 of its sigmas, over 20 seeds)."""
+    """The gravity direction of that start: 0.36 deg here, up to 1.4 deg over 20 seeds (2.1 before)."""
     assert aggressive_start.tilt_error_deg < 2.0
 
 
@@ -132,6 +132,25 @@ def test_moving_start_monte_carlo_initializes_within_1_5_s(monte_carlo_20):
     """The issue's target: initialized within 1.5 s of the first image on every moving start."""
     late = [r for r in monte_carlo_20 if not r["delay_s"] <= 1.5]
     assert not late, late
+
+
+@pytest.mark.slow
+def test_aggressive_start_forced_at_1_5_s_has_an_honest_sigma_above_the_gate(monkeypatch):
+    """Why 1.5 s is not reached: accepted at the first try after 1.5 s (1.6 s), 20 seeds.
+
+    The reported scale sigma is ~1 % there (above the 0.67 % gate: a 2 % bound would hold at 2 sigma
+    only) and honest: error / sigma RMS 1.02, largest 2.5, errors up to 2.6 % (measured).
+    """
+    import viotb.vio.msckf as msckf
+
+    forced = InitParams(min_dynamic_window_s=1.49, max_scale_sigma=1.0, max_tilt_sigma_rad=1.0)
+    monkeypatch.setattr(msckf, "InitParams", lambda: forced)
+    rows = moving_start_monte_carlo(list(range(20)), (("aggressive", 4.0),), max_delay_s=2.0)
+    assert all(r["t_init_s"] is not None and 1.5 <= r["delay_s"] <= 1.65 for r in rows)
+    sigma = np.array([r["scale_sigma"] for r in rows])
+    z = np.array([r["scale_error"] for r in rows]) / sigma
+    assert np.all(sigma > InitParams().max_scale_sigma)
+    assert 0.7 <= np.sqrt(np.mean(z**2)) <= 1.4 and np.max(np.abs(z)) <= 3.5, z
 
 
 def test_cli_record_start_in_motion(tmp_path):

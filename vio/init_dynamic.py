@@ -61,6 +61,7 @@ from viotb.vio.init_refine import (
 )
 from viotb.vio.lie import skew
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample
+from viotb.vio.update_helpers import random_walk_whitener, track_path_px
 
 Frame = tuple[float, np.ndarray, np.ndarray]
 """One frame of features: ``(t_s, ids (M,), xy_norm (M, 2))``."""
@@ -110,9 +111,16 @@ def _tilt_sigma_rad(cov_dir: np.ndarray) -> float:
 
 
 class _Window:
-    """The arrays of one dynamic solve: observations, preintegrated frames, calibration."""
+    """The arrays of one dynamic solve: observations, preintegrated frames, calibration.
 
-    def __init__(self, times, tracks, pims, calib: CameraCalibration) -> None:
+    With ``rw_to_white_var`` > 0 a track's image error is white plus a random walk growing with the
+    image path the feature has travelled (KLT's drift, ``KltParams.track_random_walk_px2_per_px``;
+    ``q`` per px, relative to the white variance): ``whiten`` applies each feature's
+    :func:`~viotb.vio.update_helpers.random_walk_whitener` (the MSCKF's model) to its rows, so that the
+    refinement is generalized least squares and the covariance counts the correlated errors.
+    """
+
+    def __init__(self, times, tracks, pims, calib: CameraCalibration, rw_to_white_var: float = 0.0) -> None:
         self.fids = list(tracks)
         self.n_f = len(self.fids)
         self.obs_frame = np.array([k for fid in self.fids for k, _ in tracks[fid]])
@@ -128,6 +136,34 @@ class _Window:
         self.Jp_ba = np.stack([pm.d_p_d_ba for pm in pims])
         self.R_BC = np.asarray(calib.R_BC, float)
         self.p_BC = np.asarray(calib.p_BC, float)
+        self.W = None  # per-feature whitening (n_f, K, K), or None: white errors
+        if rw_to_white_var > 0.0:
+            n_k = len(times)
+            xy = np.zeros((self.n_f, n_k, 2))
+            mask = np.zeros((self.n_f, n_k), dtype=bool)
+            xy[self.obs_feat, self.obs_frame] = self.obs_xy
+            mask[self.obs_feat, self.obs_frame] = True
+            path_px = track_path_px(xy, mask, np.full(n_k, float(calib.camera.fx)), n_k)
+            self.W = random_walk_whitener(path_px, mask, np.zeros(n_k, dtype=int), rw_to_white_var)
+
+    def whiten(self, a: np.ndarray, transpose: bool = False) -> np.ndarray:
+        """Each feature's whitening ``W_f`` (or ``W_f^T``) applied to per-observation rows.
+
+        Args:
+            a: Rows of every observation, shape (n_obs, 2, ...) (one image axis at a time is whitened).
+            transpose: Apply ``W_f^T`` instead (maps the sensitivities of whitened rows back onto the
+                observations, step 7b).
+
+        Returns:
+            The same shape; ``a`` itself when the errors are white.
+        """
+        if self.W is None:
+            return a
+        pad = np.zeros((self.n_f, len(self.dts), *a.shape[1:]))
+        pad[self.obs_feat, self.obs_frame] = a
+        W = np.transpose(self.W, (0, 2, 1)) if transpose else self.W
+        out = np.einsum("fuv,fv...->fu...", W, pad)
+        return out[self.obs_feat, self.obs_frame]
 
     @property
     def n_obs(self) -> int:
@@ -221,7 +257,7 @@ def dynamic_alignment(
     snaps, pim_end = run.snapshots(samples, every, t_end)
     by_time = dict(zip(every, snaps, strict=True))
     pims = [by_time[tk] for tk in times]
-    win = _Window(times, tracks, pims, calib)
+    win = _Window(times, tracks, pims, calib, p.track_random_walk_px2_per_px / p.pixel_sigma_px**2)
     sigma_floor = p.pixel_sigma_px / float(calib.camera.fx)
 
     # 3. Weighted linear solve (rows divided by the feature depth of the previous solution).
@@ -249,7 +285,7 @@ def dynamic_alignment(
     z_glob = np.concatenate([x_fix[0:3], np.zeros(N_GLOBAL - 3)])
     pf = x_fix[3:].reshape(win.n_f, 3).copy()
     prior = np.zeros(N_GLOBAL)
-    prior[8:11] = (sigma_floor / p.sigma_accel_bias_m_s2) ** 2  # in units of the reprojection sigma
+    prior[8:11] = 1.0 / p.sigma_accel_bias_m_s2**2  # the residuals are whitened (units of sigma)
     z_glob, pf, S, rms = refine(win, R_g, z_glob, pf, sigma_floor, prior, p.max_refine_iterations)
     if not np.isfinite(rms) or rms > p.max_reprojection_rms:
         return None, f"refinement reprojection RMS {rms:.4f} > {p.max_reprojection_rms}"
@@ -323,7 +359,8 @@ def _observability(win: _Window, pims, z_glob, pf, R_g, sigma: float, rms: float
     except np.linalg.LinAlgError:
         return inf
     # 7b. Sensitivity to the frame-pose errors [dtheta_k, dp_k]: G_eta = sum_obs (J_g - J_f W^T)^T J_pose.
-    L_red = Jg - Jf @ np.transpose(W[win.obs_feat], (0, 2, 1))  # (n_obs, 2, G)
+    L_red = Jg - Jf @ np.transpose(W[win.obs_feat], (0, 2, 1))  # (n_obs, 2, G), whitened rows
+    L_red = win.whiten(L_red, transpose=True)  # onto the observations, whose pose errors J_pose maps
     G_obs = np.einsum("nki,nkj->nij", L_red, Jpose) / c2  # (n_obs, G, 6)
     G_eta = np.zeros((N_GLOBAL, n_k + 1, 9))
     np.add.at(G_eta[:, :, 0:3], (slice(None), win.obs_frame), np.transpose(G_obs[:, :, 0:3], (1, 0, 2)))

@@ -46,7 +46,8 @@ def reprojection(
             observation's frame pose (``R_k Exp(dtheta)``, ``p_k + dp``).
 
     Returns:
-        ``(r (n_obs, 2), J_glob (n_obs, 2, 11), J_feat (n_obs, 2, 3))`` (and ``J_pose``); the gyro-bias
+        ``(r (n_obs, 2), J_glob (n_obs, 2, 11), J_feat (n_obs, 2, 3))`` (and ``J_pose``), the first three
+        whitened along each track (``win.whiten``), ``J_pose`` per observation, not whitened; the gyro-bias
         Jacobian uses ``Exp(J (bg + d)) ~ Exp(J bg) Exp(J d)`` (Forster eq. 44 to first order).
     """
     v0, g, bg, ba, G = globals_of(z_glob, R_g)
@@ -74,9 +75,11 @@ def reprojection(
     d_u_d_bg = skew_u @ win.JR_bg[of] - np.transpose(Rk, (0, 2, 1)) @ win.Jp_bg[of]
     J_glob[:, :, 5:8] = P @ win.R_BC.T @ d_u_d_bg
     J_glob[:, :, 8:11] = -A @ win.Jp_ba[of]
+    # Correlated track errors: whitened rows (win.whiten is the identity for white errors).
+    r_w, J_glob_w, A_w = win.whiten(r), win.whiten(J_glob), win.whiten(A)
     if with_pose:
-        return r, J_glob, A, np.concatenate([P @ win.R_BC.T @ skew_u, -A], axis=2)
-    return r, J_glob, A
+        return r_w, J_glob_w, A_w, np.concatenate([P @ win.R_BC.T @ skew_u, -A], axis=2)
+    return r_w, J_glob_w, A_w
 
 
 def normal_equations(win, r, J_glob, J_feat, w2: np.ndarray | None = None):

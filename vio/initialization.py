@@ -59,6 +59,10 @@ class InitParams:
         max_refine_iterations: Levenberg-Marquardt iterations of the refinement.
         pixel_sigma_px: Floor of the image noise (px) assumed by the observability test (the measured
             residual RMS when larger).
+        track_random_walk_px2_per_px: Variance (px^2) a track's error gains per px the feature moves,
+            on top of the white ``pixel_sigma_px``; the dynamic solve whitens each track with it (the
+            MSCKF's model, :func:`~viotb.vio.update_helpers.random_walk_whitener`). 0: white errors, as
+            simulated features have; KLT: ``KltParams.track_random_walk_px2_per_px`` (0.025).
         min_depth_m: Depth floor (m) of the row weights of the linear solve.
         min_features: Minimum number of features tracked in at least ``min_feature_obs`` frames.
         min_feature_obs: Observations a feature needs to enter the dynamic solve.
@@ -101,6 +105,7 @@ class InitParams:
     dynamic_try_every_frames: int = 2
     max_refine_iterations: int = 15
     pixel_sigma_px: float = 0.5
+    track_random_walk_px2_per_px: float = 0.0
     min_depth_m: float = 0.1
     min_features: int = 15
     min_feature_obs: int = 4
