@@ -26,6 +26,7 @@ from viotb.controllers import SE3Controller, SE3Gains
 from viotb.controllers.types import NavState
 from viotb.envs.run.closed_loop import ClosedLoopSim
 from viotb.envs.run.flight_log import FlightLog
+from viotb.envs.run.flight_metrics import blackout_metrics, flight_metrics, lights_out_metrics
 from viotb.envs.run.loop_glue import FlightLoopClosure, LoopOptions, require_images
 from viotb.envs.run.mission import TakeoffSequence
 from viotb.envs.scenarios.failures import failure_fly_scenario
@@ -34,7 +35,6 @@ from viotb.envs.sim.rig import RigConfig
 from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
-from viotb.vio.metrics import align_umeyama
 from viotb.vio.recovery import RecoveringEstimator
 
 ProgressFn = Callable[[float, float], None]
@@ -188,12 +188,12 @@ def fly(
             break
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     loop.close()
-    metrics = _metrics(log, seq.mission_t0_s, seq.init_t_s)
+    metrics = flight_metrics(log, seq.mission_t0_s, seq.init_t_s)
     metrics["notes"] = _null_notes(
         metrics, seq.init_t_s, seq.mission_t0_s, float(loop.t_s), crashed or diverged
     )
-    metrics.update(_blackout_metrics(log, rig.camera.blackout_intervals_s))
-    metrics.update(_lights_out_metrics(log, rig.lights_off_intervals_s))
+    metrics.update(blackout_metrics(log, rig.camera.blackout_intervals_s))
+    metrics.update(lights_out_metrics(log, rig.lights_off_intervals_s))
     events = loop.estimator.events if isinstance(loop.estimator, RecoveringEstimator) else []
     metrics.update(
         {
@@ -285,82 +285,3 @@ def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, 
         gyro_B=nan if imu is None else imu.gyro_B_rad_s,
         accel_B=nan if imu is None else imu.accel_B_m_s2,
     )
-
-
-def _blackout_metrics(log: FlightLog, blackouts: tuple) -> dict:
-    """Excursion during each camera blackout (+1 s) and whether tracking came back after it.
-
-    Returns ``{}`` without blackouts, else ``blackout_excursion_m`` (largest truth-to-setpoint distance
-    from the start of a blackout to 1 s after its end), ``blackout_est_err_m`` (largest estimate error in
-    that span) and ``blackout_recovered`` (every blackout is followed, within 1 s, by a frame with >= 20
-    tracked features).
-    """
-    if not blackouts:
-        return {}
-    t = np.asarray(log.t_s)
-    err_set = np.linalg.norm(np.asarray(log.p_true_W) - np.asarray(log.p_set_W), axis=1)
-    err_est = np.linalg.norm(np.asarray(log.p_est_W) - np.asarray(log.p_true_W), axis=1)
-    ft, nf = np.asarray(log.frame_t_s), np.asarray(log.frame_features)
-    excursion, est_err, recovered = 0.0, 0.0, True
-    for a, b in blackouts:
-        m = (t >= a) & (t <= b + 1.0)
-        if not np.any(m):
-            recovered = False
-            continue
-        excursion = max(excursion, float(np.nanmax(err_set[m])))
-        est_err = max(est_err, float(np.nanmax(err_est[m])))
-        after = (ft > b) & (ft <= b + 1.0)
-        recovered = recovered and bool(np.any(nf[after] >= 20))
-    return {"blackout_excursion_m": excursion, "blackout_est_err_m": est_err, "blackout_recovered": recovered}
-
-
-def _lights_out_metrics(log: FlightLog, intervals: tuple, back_m: float = 0.10) -> dict:
-    """How far the drone strays while the lights are out and how fast it is back at the hold point.
-
-    Returns ``{}`` without lights-out intervals, else ``lights_out_excursion_m`` (largest truth-to-setpoint
-    distance from the first light-off to the end of the flight) and ``lights_out_back_s``: for the last
-    interval, the time (s) after the light returns from which that distance stays below ``back_m`` until the
-    end of the flight (0 if it never left; None if it is not back by the end).
-    """
-    if not intervals:
-        return {}
-    t = np.asarray(log.t_s)
-    err = np.linalg.norm(np.asarray(log.p_true_W) - np.asarray(log.p_set_W), axis=1)
-    after = t >= intervals[0][0]
-    out: dict = {"lights_out_excursion_m": float(np.nanmax(err[after])) if np.any(after) else None}
-    end = intervals[-1][1]
-    m = t >= end
-    if not np.any(m):
-        out["lights_out_back_s"] = None
-        return out
-    far = np.flatnonzero(~(err[m] < back_m))  # NaN (no setpoint) counts as not back
-    if len(far) == 0:
-        out["lights_out_back_s"] = 0.0
-    elif far[-1] == int(np.sum(m)) - 1:
-        out["lights_out_back_s"] = None
-    else:
-        out["lights_out_back_s"] = float(t[m][far[-1] + 1] - end)
-    return out
-
-
-def _metrics(log: FlightLog, mission_t0: float | None, init_time: float | None) -> dict:
-    """Tracking and estimation metrics of a flight log."""
-    t = np.asarray(log.t_s)
-    p_true = np.asarray(log.p_true_W)
-    p_est = np.asarray(log.p_est_W)
-    p_set = np.asarray(log.p_set_W)
-    out: dict = {"hover_rms_m": None, "max_err_m": None, "ate_posyaw_m": None, "est_rms_m": None}
-    if mission_t0 is not None:
-        m = t >= mission_t0
-        err = np.linalg.norm(p_true[m] - p_set[m], axis=1)
-        if err.size:
-            out["hover_rms_m"] = float(np.sqrt(np.mean(err**2)))
-            out["max_err_m"] = float(np.max(err))
-    ok = np.all(np.isfinite(p_est), axis=1)
-    if init_time is not None and ok.sum() >= 3:
-        est_err = np.linalg.norm(p_est[ok] - p_true[ok], axis=1)
-        out["est_rms_m"] = float(np.sqrt(np.mean(est_err**2)))
-        al = align_umeyama(p_est[ok], p_true[ok], "posyaw")
-        aligned = (al.s * (al.R @ p_est[ok].T)).T + al.t
-        out["ate_posyaw_m"] = float(np.sqrt(np.mean(np.sum((aligned - p_true[ok]) ** 2, axis=1))))
-    return out
