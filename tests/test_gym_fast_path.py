@@ -1,7 +1,8 @@
 """The Gymnasium hot-path speed-ups change no number: the fast env against the pre-speed-up code path.
 
 The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the memoized gust
-decay in plain floats and ``SE3Controller.thrusts`` are patched back, and the IMU model runs although nothing
+decay in plain floats, ``SE3Controller.thrusts`` and ``thrusts_from_estimate`` (no navigation record) and
+the split physics step (``Simulation.step_checked``) are patched back, and the IMU model runs although nothing
 reads it, in the second env of each pair, to the code they replaced (copied below), and both envs are stepped
 with the same seed and the same actions: observations, rewards, terminations and ``info`` must agree bit for
 bit. (The SE(3) controller's float path is not bit-identical to its former numpy form, BLAS sums being fused
@@ -10,12 +11,15 @@ multiply-adds: tests/test_se3_float_path.py holds it to that form at round-off.)
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import pytest
 from viotb.controllers import se3
+from viotb.controllers.types import NavState
 from viotb.envs.gym.base import VioQuadEnv
 from viotb.envs.gym.hover import HoverEnv
 from viotb.envs.run.closed_loop import _COS_MAX_TILT, ClosedLoopSim, TruthState
+from viotb.envs.sim.simulation import Simulation
 from viotb.vio.types import StateEstimate
 
 
@@ -54,6 +58,17 @@ def _old_apply_wind(self, dt):
     self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
 
 
+def _old_thrusts_from_estimate(self, t_s, est, setpoint):
+    return self.update(t_s, NavState.from_estimate(est), setpoint).thrusts_N
+
+
+def _old_step_checked(self, ctrl, n_steps=1):
+    if ctrl is not None:
+        self.data.ctrl[:] = ctrl
+    mujoco.mj_step(self.model, self.data, n_steps)
+    mujoco.mj_forward(self.model, self.data)
+
+
 def _assert_same(a, b, where):
     if isinstance(a, dict):
         assert a.keys() == b.keys(), where
@@ -74,6 +89,8 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
             m.setattr(ClosedLoopSim, "_apply_wind", _old_apply_wind)
             m.setattr(VioQuadEnv, "_reads_imu", lambda self: True)
             m.setattr(se3.SE3Controller, "thrusts", lambda self, t, x, sp: self.update(t, x, sp).thrusts_N)
+            m.setattr(se3.SE3Controller, "thrusts_from_estimate", _old_thrusts_from_estimate)
+            m.setattr(Simulation, "step_checked", _old_step_checked)
         env = HoverEnv(**kwargs)
         out = [env.reset(seed=3)]
         for a in actions:
@@ -105,8 +122,6 @@ def test_fast_path_matches_old_code_bit_for_bit(estimator, action_type, n_steps,
 def test_truth_memo_follows_set_pose_and_stays_read_only():
     """A kinematic placement without a physics step must not return the previous pose (memo key)."""
     loop = ClosedLoopSim.__new__(ClosedLoopSim)  # only the truth readers are exercised below
-    from viotb.envs.sim.simulation import Simulation
-
     loop.sim = Simulation("quadrotor", "textured_room")
     loop._truth_key, loop._truth = None, None
     first = loop.truth()

@@ -26,7 +26,7 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 from viotb.controllers import Mixer, SE3Controller, SE3Gains
-from viotb.controllers.types import FlatOutput, NavState
+from viotb.controllers.types import FlatOutput
 from viotb.envs.gym.config import FAILURE_REASONS, RENDER_CAMERAS, VioEnvConfig, make_config
 from viotb.envs.gym.rewards import cost_crash, cost_effort, cost_smoothness, reward_tracking
 from viotb.envs.gym.starts import ground_start, place_airborne, randomize_sensor_and_body, rig_config
@@ -272,7 +272,7 @@ class VioQuadEnv(gymnasium.Env):
             )
         else:
             setpoint = self._position_setpoint(a)
-        return self._controller.thrusts(self._loop.t_s, NavState.from_estimate(est), setpoint)
+        return self._controller.thrusts_from_estimate(self._loop.t_s, est, setpoint)
 
     def _position_setpoint(self, a: np.ndarray) -> FlatOutput:
         """Setpoint of the ``position`` action: constant over a policy step, so built once per step.

@@ -153,8 +153,9 @@ class ClosedLoopSim:
         self._body_id = self.sim.model.body(QUAD_BODY).id
         self._bounds = SCENE_BOUNDS_M.get(config.scene)
         # Crash box: the scene bounds widened by 0.5 m (built once; read every low-level tick).
-        self._crash_lo = None if self._bounds is None else np.subtract(self._bounds[0], 0.5)
-        self._crash_hi = None if self._bounds is None else np.add(self._bounds[1], 0.5)
+        # Crash box as float triples (the per-tick test compares floats, not arrays).
+        self._crash_lo = None if self._bounds is None else tuple(np.subtract(self._bounds[0], 0.5).tolist())
+        self._crash_hi = None if self._bounds is None else tuple(np.add(self._bounds[1], 0.5).tolist())
         # truth() memo: the TruthState of one physics state, keyed on (time, qpos, qvel) (see truth()).
         self._truth_key: tuple | None = None
         self._truth: TruthState | None = None
@@ -232,8 +233,11 @@ class ClosedLoopSim:
         tr = self.truth()
         if tr.R_WB[2, 2] < _COS_MAX_TILT:
             return True
-        if self._bounds is not None:
-            if (tr.p_WB < self._crash_lo).any() or (tr.p_WB > self._crash_hi).any():
+        if self._crash_lo is not None:
+            p0, p1, p2 = tr.p_WB.tolist()
+            lo0, lo1, lo2 = self._crash_lo
+            hi0, hi1, hi2 = self._crash_hi
+            if p0 < lo0 or p1 < lo1 or p2 < lo2 or p0 > hi0 or p1 > hi1 or p2 > hi2:
                 return True
         return airborne and self.sim.in_collision()
 

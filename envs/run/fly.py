@@ -23,7 +23,6 @@ from dataclasses import replace
 
 import numpy as np
 from viotb.controllers import SE3Controller, SE3Gains
-from viotb.controllers.types import NavState
 from viotb.envs.run.closed_loop import ClosedLoopSim
 from viotb.envs.run.flight_log import FlightLog
 from viotb.envs.run.flight_metrics import blackout_metrics, flight_metrics, lights_out_metrics
@@ -149,7 +148,7 @@ def fly(
         if phase == "ground" or est is None or setpoint is None:
             thrusts = np.zeros(4)
         else:
-            thrusts = controller.thrusts(loop.t_s, NavState.from_estimate(est), setpoint)
+            thrusts = controller.thrusts_from_estimate(loop.t_s, est, setpoint)
         loop.advance(thrusts, ctrl_dt)
         tr = loop.truth()
         airborne = phase != "ground" and (loop.t_s - seq.plan_t0_s > 1.0 or phase != "takeoff")
