@@ -28,6 +28,7 @@ from gymnasium import spaces
 from viotb.controllers import Mixer, SE3Controller, SE3Gains
 from viotb.controllers.types import FlatOutput
 from viotb.envs.gym.config import FAILURE_REASONS, RENDER_CAMERAS, VioEnvConfig, make_config
+from viotb.envs.gym.info import step_info
 from viotb.envs.gym.rewards import cost_crash, cost_effort, cost_smoothness, reward_tracking
 from viotb.envs.gym.starts import ground_start, place_airborne, randomize_sensor_and_body, rig_config
 from viotb.envs.run.closed_loop import ClosedLoopSim
@@ -82,7 +83,8 @@ class VioQuadEnv(gymnasium.Env):
     diagonals (3 + 3) and the tracked-feature count (1). ``obs_mode="dict"`` adds ``image`` (the last onboard
     gray frame, (H, W, 1) uint8) and ``imu`` (the last ``imu_window`` raw IMU samples, gyro then
     accelerometer, (K, 6)). Ground truth is only in ``info`` (``p_true_W_m``, ``v_true_W_m_s``,
-    ``R_true_WB``, ``position_error_m``, ``estimate_error_m``).
+    ``R_true_WB``, ``position_error_m``, ``estimate_error_m``; ``info="flat"`` keeps only the scalars, the
+    cheap form for vector envs: :mod:`viotb.envs.gym.info`).
 
     ## Rewards Sum of ``info["reward_components"]`` (also ``info["reward_<name>"]``), computed from the TRUE
     position: ``tracking = w * exp(-|p - p_target| / tracking_scale_m)``, ``effort = -w |a - a_hover|^2``,
@@ -435,29 +437,10 @@ class VioQuadEnv(gymnasium.Env):
         return {"state": state, "image": image, "imu": imu}
 
     def _get_info(self, components: dict[str, float], reason: str) -> dict:
-        """Ground truth and diagnostics (never part of the observation)."""
-        tr = self._loop.truth()
-        est = self._loop.estimate()
-        health = self._loop.health()
-        info = {
-            "t_s": tr.t_s,
-            "p_true_W_m": tr.p_WB.copy(),
-            "v_true_W_m_s": tr.v_WB.copy(),
-            "R_true_WB": tr.R_WB.copy(),
-            "target_W_m": self._target_true_W.copy(),
-            "position_error_m": float(np.linalg.norm(tr.p_WB - self._target_true_W)),
-            "estimate_error_m": np.nan,
-            "tracked_features": int(health.tracked_features),
-            "conditions": tuple(health.conditions),
-            "termination_reason": reason,
-            "reward_components": dict(components),
-        }
-        if est is not None:
-            p_est_W = self._R_EW.T @ (est.p_WB - self._t_EW)
-            info["estimate_error_m"] = float(np.linalg.norm(p_est_W - tr.p_WB))
-        for name, value in components.items():
-            info[f"reward_{name}"] = value
-        return info
+        """Ground truth and diagnostics (never part of the observation; ``config.info``'s form)."""
+        return step_info(
+            self._loop, self._target_true_W, self._R_EW, self._t_EW, components, reason, self.config.info
+        )
 
     # ------------------------------------------------------------------ render and close
 
