@@ -162,6 +162,10 @@ class ClosedLoopSim:
         self._truth_fed: TruthState | None = None
         self._pending: deque[tuple[float, CameraFrame]] = deque()
         self._wind_gust_W = (0.0, 0.0, 0.0)  # gust force (N) in W, plain floats
+        # The gust's normals, 256 triples drawn at once: the same draws in the same order as one
+        # standard_normal(3) per update (numpy's Generator keeps no state between calls).
+        self._wind_normals: list[list[float]] = []
+        self._wind_next = 0
         self._gust_decay: dict[tuple[float, float], tuple[float, float]] = {}
         self._step_count = 0
         self.last_frame: CameraFrame | None = None
@@ -324,7 +328,10 @@ class ClosedLoopSim:
                 decay = self._gust_decay[key] = (a, float(np.sqrt(1.0 - a * a)))
             a, scale = decay
             # Per axis in plain floats: (n sigma) scale, then a g + noise, the vertical noise zero.
-            n0, n1, _ = self._rng_wind.standard_normal(3).tolist()
+            if self._wind_next == len(self._wind_normals):
+                self._wind_normals, self._wind_next = self._rng_wind.standard_normal((256, 3)).tolist(), 0
+            n0, n1, _ = self._wind_normals[self._wind_next]
+            self._wind_next += 1
             sigma = w.gust_sigma_N
             g0, g1, g2 = self._wind_gust_W
             self._wind_gust_W = (a * g0 + n0 * sigma * scale, a * g1 + n1 * sigma * scale, a * g2 + 0.0)
