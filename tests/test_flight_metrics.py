@@ -169,3 +169,43 @@ def test_lights_out_back_time_across_a_chunk_boundary(last_far_tick, back_s):
     never_back = _step_error_flight(300, 299)
     assert lights_out_metrics(never_back, ((0.1, 0.2),), 0.5)["lights_out_back_s"] is None
     assert lights_out_metrics(log, ((0.6, 0.7),), 0.5)["lights_out_back_s"] == 0.0  # back before the light
+
+
+def test_logged_tick_equals_the_gauge_in_matrix_form():
+    """The per-tick log's gauge in floats gives the matrix form's values to round-off.
+
+    ``R_g p + t_g`` (estimate, setpoint), ``sqrt(diag(R_g C R_g^T))`` and ``yaw(R_g R_WB)``.
+    """
+    from types import SimpleNamespace
+
+    from viotb.controllers.types import FlatOutput
+    from viotb.envs.run.closed_loop import TruthState
+    from viotb.envs.run.fly import _gauge, _gauge_floats, _log_tick
+    from viotb.vio.lie import exp_so3, yaw_from_rotmat
+    from viotb.vio.types import ImuSample, StateEstimate
+
+    rng = np.random.default_rng(9)
+    log, want = FlightLog(), []
+    for k in range(50):
+        R_est, R_true = exp_so3(rng.normal(size=3)), exp_so3(rng.normal(size=3))
+        R_g, t_g = _gauge(R_est, rng.normal(size=3), R_true, rng.normal(size=3))
+        A = rng.normal(size=(15, 15))
+        cov = A @ A.T * 1e-3
+        est = StateEstimate(t_s=0.1, R_WB=R_est, p_WB=rng.normal(size=3), v_WB=np.zeros(3), cov=cov)
+        sp = FlatOutput(p_W=rng.normal(size=3))
+        tr = TruthState(0.1, R_true, rng.normal(size=3), np.zeros(3), np.zeros(3))
+        imu = ImuSample(0.1, rng.normal(size=3), rng.normal(size=3), False)
+        loop = SimpleNamespace(last_imu=imu, t_s=0.004 * k)
+        _log_tick(log, loop, "mission", est, sp, _gauge_floats(R_g, t_g), tr, rng.uniform(size=4))
+        C = R_g @ est.cov_position_W_m2 @ R_g.T
+        want.append(
+            (R_g @ est.p_WB + t_g, np.sqrt(np.diag(C)), yaw_from_rotmat(R_g @ R_est), R_g @ sp.p_W + t_g)
+        )
+    p_est, p_sigma, yaw_est, p_set = (np.array([w[i] for w in want]) for i in range(4))
+    np.testing.assert_allclose(log.p_est_W, p_est, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(log.p_sigma_W, p_sigma, rtol=1e-12)
+    np.testing.assert_allclose(log.yaw_est, yaw_est, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(log.p_set_W, p_set, rtol=0.0, atol=1e-12)
+    with pytest.raises(ValueError, match="p_est_W has 2 values, expected 3"):
+        others = ("p_true_W", "p_sigma_W", "p_set_W", "yaw_true", "yaw_est", "thrusts_N", "gyro_B", "accel_B")
+        log.append_tick(0.0, "mission", p_est_W=(1.0, 2.0), **dict.fromkeys(others, np.nan))

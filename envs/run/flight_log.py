@@ -151,18 +151,23 @@ class FlightLog:
     def append_tick(self, t_s: float, phase: str, **values) -> None:
         """Add one control tick.
 
-        ``values`` holds every tick column but ``t_s``: an array, or a float for the whole column (NaN
-        before the gauge is fixed).
+        ``values`` holds every tick column but ``t_s``: an array or a tuple of the column's width, or a
+        float for the whole column (NaN before the gauge is fixed).
 
         Raises:
             KeyError: A missing column.
+            ValueError: A column with the wrong number of values.
         """
         k = self._ticks.n
         cells = [float(t_s)]
         for name, width in _TICK_COLUMNS[1:]:
             v = values[name]
             if isinstance(v, np.ndarray) and v.ndim:
-                cells.extend(v.tolist())  # one row assignment below: faster than ten slice writes
+                v = v.tolist()  # one row assignment below: faster than ten slice writes
+            if isinstance(v, list | tuple):
+                if len(v) != width:
+                    raise ValueError(f"FlightLog.append_tick: {name} has {len(v)} values, expected {width}")
+                cells.extend(v)
             else:
                 cells.extend([float(v)] * width)
         self._ticks.next_row()[:] = cells

@@ -17,6 +17,7 @@ truth frame by the 4-DOF (yaw + translation) gauge fixed at initialization, whic
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -47,6 +48,11 @@ def _gauge(est_R: np.ndarray, est_p: np.ndarray, true_R: np.ndarray, true_p: np.
     dyaw = yaw_from_rotmat(true_R) - yaw_from_rotmat(est_R)
     R = rotz(dyaw)
     return R, true_p - R @ est_p
+
+
+def _gauge_floats(R_g: np.ndarray, t_g: np.ndarray) -> tuple[float, float, float, float, float]:
+    """``(cos, sin, t_x, t_y, t_z)`` of a gauge ``(R_g = rotz(yaw), t_g)`` from :func:`_gauge`."""
+    return (float(R_g[0, 0]), float(R_g[1, 0]), *t_g.tolist())
 
 
 def fly(
@@ -143,7 +149,7 @@ def fly(
         setpoint = seq.update(loop.t_s, est, loop.estimator)
         if on_ground and seq.phase != "ground":
             tr = loop.truth()
-            gauge = _gauge(est.R_WB, est.p_WB, tr.R_WB, tr.p_WB)
+            gauge = _gauge_floats(*_gauge(est.R_WB, est.p_WB, tr.R_WB, tr.p_WB))
         phase = seq.phase
         if phase == "ground" or est is None or setpoint is None:
             thrusts = np.zeros(4)
@@ -258,19 +264,29 @@ def _null_notes(
 
 
 def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, tr, thrusts) -> None:
-    """Append one control tick to the log (setpoint and estimate mapped to the truth frame by the gauge)."""
+    """Append one control tick to the log (setpoint and estimate mapped to the truth frame by the gauge).
+
+    The gauge is a yaw about z and a translation, applied in floats (:func:`_gauge_floats`): the values
+    equal the matrix form ``R_g @ p + t_g``, ``sqrt(diag(R_g C R_g^T))``, ``yaw(R_g R_WB)`` to round-off.
+    """
     imu = loop.last_imu
-    nan = np.nan
+    nan = math.nan
     p_est = p_sigma = p_set = nan
     yaw_est = nan
-    if est is not None and gauge is not None:
-        R_g, t_g = gauge
-        p_est = R_g @ est.p_WB + t_g
-        cov_p = R_g @ est.cov_position_W_m2 @ R_g.T
-        p_sigma = np.sqrt(np.clip(np.diag(cov_p), 0.0, None))
-        yaw_est = yaw_from_rotmat(R_g @ est.R_WB)
-    if setpoint is not None and gauge is not None:
-        p_set = gauge[0] @ setpoint.p_W + gauge[1]
+    if gauge is not None:
+        c, s, t0, t1, t2 = gauge
+        if est is not None:
+            x, y, z = est.p_WB.tolist()
+            p_est = (c * x - s * y + t0, s * x + c * y + t1, z + t2)
+            (cxx, cxy, _), (cyx, cyy, _), (_, _, czz) = est.cov_position_W_m2.tolist()
+            vxx = c * c * cxx - c * s * (cxy + cyx) + s * s * cyy
+            vyy = s * s * cxx + c * s * (cxy + cyx) + c * c * cyy
+            p_sigma = (math.sqrt(max(vxx, 0.0)), math.sqrt(max(vyy, 0.0)), math.sqrt(max(czz, 0.0)))
+            (r00, _, _), (r10, _, _), _ = est.R_WB.tolist()
+            yaw_est = math.atan2(s * r00 + c * r10, c * r00 - s * r10)
+        if setpoint is not None:
+            x, y, z = setpoint.p_W.tolist()
+            p_set = (c * x - s * y + t0, s * x + c * y + t1, z + t2)
     log.append_tick(
         loop.t_s,
         phase,
