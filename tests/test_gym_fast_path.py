@@ -2,7 +2,8 @@
 
 The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the memoized gust
 decay in plain floats, ``SE3Controller.thrusts`` and ``thrusts_from_estimate`` (no navigation record) and
-the split physics step (``Simulation.step_checked``) are patched back, and the IMU model runs although nothing
+the split physics step (``Simulation.step_checked``), the env's target memo, arena test and reward sums in
+floats are patched back, and the IMU model runs although nothing
 reads it, in the second env of each pair, to the code they replaced (copied below), and both envs are stepped
 with the same seed and the same actions: observations, rewards, terminations and ``info`` must agree bit for
 bit. (The SE(3) controller's float path is not bit-identical to its former numpy form, BLAS sums being fused
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 from viotb.controllers import se3
 from viotb.controllers.types import NavState
+from viotb.envs.gym import rewards
 from viotb.envs.gym.base import VioQuadEnv
 from viotb.envs.gym.hover import HoverEnv
 from viotb.envs.run.closed_loop import _COS_MAX_TILT, ClosedLoopSim, TruthState
@@ -69,6 +71,17 @@ def _old_step_checked(self, ctrl, n_steps=1):
     mujoco.mj_forward(self.model, self.data)
 
 
+def _old_update_target(self):
+    p, v = self._target_W(self._t_task)
+    self._target_true_W, self._target_v_W = p, v
+    self._target_est = self._R_EW @ p + self._t_EW
+    self._target_v_est = self._R_EW @ v
+
+
+def _old_outside_arena(self, p_W):
+    return bool((p_W < np.array(self._arena_lo)).any() or (p_W > np.array(self._arena_hi)).any())
+
+
 def _assert_same(a, b, where):
     if isinstance(a, dict):
         assert a.keys() == b.keys(), where
@@ -91,6 +104,9 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
             m.setattr(se3.SE3Controller, "thrusts", lambda self, t, x, sp: self.update(t, x, sp).thrusts_N)
             m.setattr(se3.SE3Controller, "thrusts_from_estimate", _old_thrusts_from_estimate)
             m.setattr(Simulation, "step_checked", _old_step_checked)
+            m.setattr(VioQuadEnv, "_update_target", _old_update_target)
+            m.setattr(VioQuadEnv, "_outside_arena", _old_outside_arena)
+            m.setattr(rewards, "_sum_sq_diff", lambda a, b: np.sum((a - b) ** 2))
         env = HoverEnv(**kwargs)
         out = [env.reset(seed=3)]
         for a in actions:
@@ -135,3 +151,12 @@ def test_truth_memo_follows_set_pose_and_stays_read_only():
     np.testing.assert_allclose(moved.p_WB - first.p_WB, [0.3, 0.0, 0.0], atol=1e-12)
     with pytest.raises(ValueError):
         moved.p_WB[0] = 0.0
+
+
+def test_reward_sums_in_floats_equal_numpy_sums():
+    """Under 8 entries numpy sums left to right, as the float path does; from 8 on it is numpy's sum."""
+    rng = np.random.default_rng(2)
+    for n in (1, 3, 4, 7, 8, 12):
+        for _ in range(200):
+            a, b = rng.normal(size=n) * 10.0 ** rng.uniform(-4, 4, n), rng.normal(size=n)
+            assert rewards._sum_sq_diff(a, b) == float(np.sum((a - b) ** 2))

@@ -153,8 +153,9 @@ class VioQuadEnv(gymnasium.Env):
         self._mixer = Mixer(self._vehicle)
         self._neutral = self._neutral_action()
         lo, hi = SCENE_BOUNDS_M[cfg.scene]
-        self._arena_lo = np.asarray(lo) + cfg.arena_margin_m
-        self._arena_hi = np.asarray(hi) - cfg.arena_margin_m
+        # The arena box as float triples (the per-step test compares floats, not arrays).
+        self._arena_lo = tuple((np.asarray(lo) + cfg.arena_margin_m).tolist())
+        self._arena_hi = tuple((np.asarray(hi) - cfg.arena_margin_m).tolist())
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
         self.observation_space = self._observation_space()
         state_space = self.observation_space if cfg.obs_mode == "state" else self.observation_space["state"]
@@ -164,6 +165,7 @@ class VioQuadEnv(gymnasium.Env):
         self._renderer = None
         self._imu: deque = deque(maxlen=cfg.imu_window)
         self._setpoint_cache: tuple[tuple, FlatOutput] | None = None
+        self._target_key: tuple | None = None
         self._terminated = False
 
     @property
@@ -304,6 +306,7 @@ class VioQuadEnv(gymnasium.Env):
         self._loop = loop
         randomize_sensor_and_body(loop, cfg, rng)
         self._R_EW, self._t_EW = np.eye(3), np.zeros(3)
+        self._target_key = None  # the estimator frame is new: recompute the target in it
         if cfg.start == "air":
             place_airborne(loop, cfg, rng)
         else:
@@ -338,11 +341,25 @@ class VioQuadEnv(gymnasium.Env):
             self._imu.append(imu)
 
     def _update_target(self) -> None:
-        """Target now, in the world (reward) and estimator (observation) frames."""
+        """Target now, in the world (reward) and estimator (observation) frames.
+
+        The estimator-frame target is recomputed only when the world target changes (Hover's never does;
+        the values are the same, memoized on the target's bytes).
+        """
         p, v = self._target_W(self._t_task)
         self._target_true_W, self._target_v_W = p, v
-        self._target_est = self._R_EW @ p + self._t_EW
-        self._target_v_est = self._R_EW @ v
+        key = (p.tobytes(), v.tobytes())
+        if key != self._target_key:
+            self._target_key = key
+            self._target_est = self._R_EW @ p + self._t_EW
+            self._target_v_est = self._R_EW @ v
+
+    def _outside_arena(self, p_W: np.ndarray) -> bool:
+        """Whether a true position (m), shape (3,), is outside the arena box (float comparisons)."""
+        p0, p1, p2 = p_W.tolist()
+        lo0, lo1, lo2 = self._arena_lo
+        hi0, hi1, hi2 = self._arena_hi
+        return p0 < lo0 or p1 < lo1 or p2 < lo2 or p0 > hi0 or p1 > hi1 or p2 > hi2
 
     def step(self, action):
         """Hold ``action`` for ``ctrl_dt``; returns ``(obs, reward, terminated, truncated, info)``."""
@@ -370,7 +387,7 @@ class VioQuadEnv(gymnasium.Env):
         tr = loop.truth()
         if not reason and loop.health().diverged:
             reason = "diverged"
-        if not reason and ((tr.p_WB < self._arena_lo).any() or (tr.p_WB > self._arena_hi).any()):
+        if not reason and self._outside_arena(tr.p_WB):
             reason = "left_arena"
         err = float(np.linalg.norm(tr.p_WB - self._target_true_W))
         if not reason and err > self.config.max_target_distance_m:
