@@ -141,6 +141,7 @@ class FlightLog:
         self._ticks = _Rows(_TICK_WIDTH, chunk_rows, in_memory, spill_dir)
         self._phase_codes = np.empty(4096, dtype=np.int8)
         self._phase_names: list[str] = []
+        self._phase_index: dict[str, int] = {}
         self._frames = _Rows(2, 1024, in_memory=True)
         self.frame_conditions: list[tuple[str, ...]] = []
 
@@ -158,24 +159,39 @@ class FlightLog:
             KeyError: A missing column.
             ValueError: A column with the wrong number of values.
         """
-        k = self._ticks.n
         cells = [float(t_s)]
         for name, width in _TICK_COLUMNS[1:]:
             v = values[name]
             if isinstance(v, np.ndarray) and v.ndim:
-                v = v.tolist()  # one row assignment below: faster than ten slice writes
+                v = v.tolist()
             if isinstance(v, list | tuple):
                 if len(v) != width:
                     raise ValueError(f"FlightLog.append_tick: {name} has {len(v)} values, expected {width}")
                 cells.extend(v)
             else:
                 cells.extend([float(v)] * width)
-        self._ticks.next_row()[:] = cells
+        self.append_row(phase, cells)
+
+    def append_row(self, phase: str, row: list[float]) -> None:
+        """Add one control tick from its 25 floats in column order (``t_s``, ``p_true_W``... ``accel_B``).
+
+        The flight runner's per-tick path (:meth:`append_tick` without the per-column dispatch): one row
+        assignment into the current chunk.
+
+        Raises:
+            ValueError: A row that is not 25 values long.
+        """
+        if len(row) != _TICK_WIDTH:
+            raise ValueError(f"FlightLog.append_row: {len(row)} values, expected {_TICK_WIDTH}")
+        k = self._ticks.n
+        self._ticks.next_row()[:] = row
         if k == self._phase_codes.shape[0]:
             self._phase_codes = np.concatenate([self._phase_codes, np.empty_like(self._phase_codes)])
-        if phase not in self._phase_names:
+        code = self._phase_index.get(phase)
+        if code is None:
+            code = self._phase_index[phase] = len(self._phase_names)
             self._phase_names.append(phase)
-        self._phase_codes[k] = self._phase_names.index(phase)
+        self._phase_codes[k] = code
 
     def append_frame(self, t_s: float, tracked_features: int, conditions: tuple[str, ...]) -> None:
         """Add one delivered camera frame."""

@@ -270,9 +270,9 @@ def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, 
     equal the matrix form ``R_g @ p + t_g``, ``sqrt(diag(R_g C R_g^T))``, ``yaw(R_g R_WB)`` to round-off.
     """
     imu = loop.last_imu
-    nan = math.nan
-    p_est = p_sigma = p_set = nan
-    yaw_est = nan
+    nan3 = (math.nan, math.nan, math.nan)
+    p_est = p_sigma = p_set = nan3
+    yaw_est = math.nan
     if gauge is not None:
         c, s, t0, t1, t2 = gauge
         if est is not None:
@@ -287,16 +287,11 @@ def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, 
         if setpoint is not None:
             x, y, z = setpoint.p_W.tolist()
             p_set = (c * x - s * y + t0, s * x + c * y + t1, z + t2)
-    log.append_tick(
-        loop.t_s,
+    gyro, accel = (nan3, nan3) if imu is None else (imu.gyro_B_rad_s.tolist(), imu.accel_B_m_s2.tolist())
+    # The row in FlightLog's column order: t_s, p_true_W, p_est_W, p_sigma_W, p_set_W, yaw_true, yaw_est,
+    # thrusts_N, gyro_B, accel_B.
+    log.append_row(
         phase,
-        p_true_W=tr.p_WB,
-        p_est_W=p_est,
-        p_sigma_W=p_sigma,
-        p_set_W=p_set,
-        yaw_true=yaw_from_rotmat(tr.R_WB),
-        yaw_est=yaw_est,
-        thrusts_N=thrusts,
-        gyro_B=nan if imu is None else imu.gyro_B_rad_s,
-        accel_B=nan if imu is None else imu.accel_B_m_s2,
-    )
+        [loop.t_s, *tr.p_WB.tolist(), *p_est, *p_sigma, *p_set, yaw_from_rotmat(tr.R_WB), yaw_est,
+         *np.asarray(thrusts, dtype=float).tolist(), *gyro, *accel],
+    )  # fmt: skip
