@@ -25,9 +25,12 @@ import numpy as np
 from viotb.controllers.mixer import Mixer
 from viotb.controllers.types import ControlCommand, FlatOutput, NavState
 from viotb.controllers.vehicle import VehicleParams
+from viotb.vio.types import StateEstimate
 
 _MAX_INTEGRATION_STEP_S = 0.1
 """Longer gaps between updates (e.g. after a pause) are not integrated."""
+_NAV_SHAPES = ((3, 3), (3,), (3,), (3,))
+"""Shapes of ``R_WB``, ``p_WB``, ``v_WB``, ``omega_B`` in a navigation state."""
 
 
 def _arr(values: tuple[float, ...]) -> np.ndarray:
@@ -235,15 +238,35 @@ class SE3Controller:
         """
         return self._thrusts_and_axes(t_s, state, setpoint)[0]
 
+    def thrusts_from_estimate(self, t_s: float, estimate: StateEstimate, setpoint: FlatOutput) -> np.ndarray:
+        """``thrusts(t_s, NavState.from_estimate(estimate), setpoint)`` without building the record.
+
+        The per-tick call of the flight runner and the envs: the estimate's arrays are read as floats once
+        (shapes checked, finiteness by one sum) instead of being copied into a validated record. An estimate
+        the record would reject takes the record's path, so the same ``ValueError`` names the field.
+        """
+        arrays = (estimate.R_WB, estimate.p_WB, estimate.v_WB, estimate.omega_B_rad_s)
+        if tuple(a.shape for a in arrays) == _NAV_SHAPES:
+            R, p, v, w = (a.tolist() for a in arrays)
+            if math.isfinite(sum(R[0]) + sum(R[1]) + sum(R[2]) + sum(p) + sum(v) + sum(w)):
+                return self._thrusts_f(t_s, R, p, v, w, setpoint)[0]
+        return self.thrusts(t_s, NavState.from_estimate(estimate), setpoint)
+
     def _thrusts_and_axes(
         self, t_s: float, state: NavState, setpoint: FlatOutput
     ) -> tuple[np.ndarray, tuple]:
         """Steps 1-6 above: motor thrusts (N), shape (4,), and the columns ``(b_1d, b_2d, b_3d)`` of R_d."""
+        R, p, v = state.R_WB.tolist(), state.p_WB.tolist(), state.v_WB.tolist()
+        return self._thrusts_f(t_s, R, p, v, state.omega_B.tolist(), setpoint)
+
+    def _thrusts_f(
+        self, t_s: float, R: list, p: list, v: list, w: list, setpoint: FlatOutput
+    ) -> tuple[np.ndarray, tuple]:
+        """:meth:`_thrusts_and_axes` on the state as floats: ``R`` (3 rows of 3), ``p``, ``v``, ``w`` (3)."""
         m = self._mass_kg
-        R = state.R_WB.tolist()
-        p0, p1, p2 = state.p_WB.tolist()
-        v0, v1, v2 = state.v_WB.tolist()
-        w0, w1, w2 = state.omega_B.tolist()
+        p0, p1, p2 = p
+        v0, v1, v2 = v
+        w0, w1, w2 = w
         pd0, pd1, pd2 = setpoint.p_W.tolist()
         vd0, vd1, vd2 = setpoint.v_W.tolist()
         ad0, ad1, ad2 = setpoint.a_W.tolist()

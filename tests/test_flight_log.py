@@ -53,3 +53,32 @@ def test_nan_placeholders_frames_and_unknown_names():
     assert log.frame_t_s[-1] == pytest.approx(4.95) and log.frame_conditions[1] == ("zupt",)
     with pytest.raises(AttributeError, match="no attribute 'p_truth'"):
         _ = log.p_truth
+
+
+def test_append_row_equals_append_tick_and_checks_its_length():
+    rng = np.random.default_rng(3)
+    by_tick, by_row = FlightLog(chunk_rows=16), FlightLog(chunk_rows=16)
+    names = (
+        "p_true_W",
+        "p_est_W",
+        "p_sigma_W",
+        "p_set_W",
+        "yaw_true",
+        "yaw_est",
+        "thrusts_N",
+        "gyro_B",
+        "accel_B",
+    )
+    for k in range(40):
+        tick = _tick(rng)
+        phase = "takeoff" if k < 20 else "mission"
+        by_tick.append_tick(0.004 * k, phase, **tick)
+        row = [0.004 * k]
+        for name in names:
+            row += np.atleast_1d(tick[name]).tolist()
+        by_row.append_row(phase, row)
+    for name in ("t_s", *names):
+        np.testing.assert_array_equal(getattr(by_row, name), getattr(by_tick, name))
+    assert list(by_row.phase) == list(by_tick.phase)
+    with pytest.raises(ValueError, match="24 values, expected 25"):
+        by_row.append_row("mission", [0.0] * 24)

@@ -1,7 +1,9 @@
 """The Gymnasium hot-path speed-ups change no number: the fast env against the pre-speed-up code path.
 
 The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the memoized gust
-decay in plain floats and ``SE3Controller.thrusts`` are patched back, and the IMU model runs although nothing
+decay in plain floats, ``SE3Controller.thrusts`` and ``thrusts_from_estimate`` (no navigation record) and
+the split physics step (``Simulation.step_checked``), the env's target memo, arena test and reward sums in
+floats are patched back, and the IMU model runs although nothing
 reads it, in the second env of each pair, to the code they replaced (copied below), and both envs are stepped
 with the same seed and the same actions: observations, rewards, terminations and ``info`` must agree bit for
 bit. (The SE(3) controller's float path is not bit-identical to its former numpy form, BLAS sums being fused
@@ -10,12 +12,16 @@ multiply-adds: tests/test_se3_float_path.py holds it to that form at round-off.)
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import pytest
 from viotb.controllers import se3
+from viotb.controllers.types import NavState
+from viotb.envs.gym import rewards
 from viotb.envs.gym.base import VioQuadEnv
 from viotb.envs.gym.hover import HoverEnv
 from viotb.envs.run.closed_loop import _COS_MAX_TILT, ClosedLoopSim, TruthState
+from viotb.envs.sim.simulation import Simulation
 from viotb.vio.types import StateEstimate
 
 
@@ -54,6 +60,28 @@ def _old_apply_wind(self, dt):
     self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
 
 
+def _old_thrusts_from_estimate(self, t_s, est, setpoint):
+    return self.update(t_s, NavState.from_estimate(est), setpoint).thrusts_N
+
+
+def _old_step_checked(self, ctrl, n_steps=1):
+    if ctrl is not None:
+        self.data.ctrl[:] = ctrl
+    mujoco.mj_step(self.model, self.data, n_steps)
+    mujoco.mj_forward(self.model, self.data)
+
+
+def _old_update_target(self):
+    p, v = self._target_W(self._t_task)
+    self._target_true_W, self._target_v_W = p, v
+    self._target_est = self._R_EW @ p + self._t_EW
+    self._target_v_est = self._R_EW @ v
+
+
+def _old_outside_arena(self, p_W):
+    return bool((p_W < np.array(self._arena_lo)).any() or (p_W > np.array(self._arena_hi)).any())
+
+
 def _assert_same(a, b, where):
     if isinstance(a, dict):
         assert a.keys() == b.keys(), where
@@ -74,6 +102,11 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
             m.setattr(ClosedLoopSim, "_apply_wind", _old_apply_wind)
             m.setattr(VioQuadEnv, "_reads_imu", lambda self: True)
             m.setattr(se3.SE3Controller, "thrusts", lambda self, t, x, sp: self.update(t, x, sp).thrusts_N)
+            m.setattr(se3.SE3Controller, "thrusts_from_estimate", _old_thrusts_from_estimate)
+            m.setattr(Simulation, "step_checked", _old_step_checked)
+            m.setattr(VioQuadEnv, "_update_target", _old_update_target)
+            m.setattr(VioQuadEnv, "_outside_arena", _old_outside_arena)
+            m.setattr(rewards, "_sum_sq_diff", lambda a, b: np.sum((a - b) ** 2))
         env = HoverEnv(**kwargs)
         out = [env.reset(seed=3)]
         for a in actions:
@@ -87,7 +120,11 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
 
 @pytest.mark.parametrize(
     ("estimator", "action_type", "n_steps"),
-    [("ground-truth", "position", 60), ("ground-truth", "velocity", 40), ("msckf", "position", 25)],
+    [
+        ("ground-truth", "position", 70),
+        ("ground-truth", "velocity", 40),
+        ("msckf", "position", 25),
+    ],  # 70: 280 gusts
 )
 def test_fast_path_matches_old_code_bit_for_bit(estimator, action_type, n_steps, monkeypatch):
     """Same seed, same actions: the patched-back old code and the fast code give identical steps."""
@@ -105,8 +142,6 @@ def test_fast_path_matches_old_code_bit_for_bit(estimator, action_type, n_steps,
 def test_truth_memo_follows_set_pose_and_stays_read_only():
     """A kinematic placement without a physics step must not return the previous pose (memo key)."""
     loop = ClosedLoopSim.__new__(ClosedLoopSim)  # only the truth readers are exercised below
-    from viotb.envs.sim.simulation import Simulation
-
     loop.sim = Simulation("quadrotor", "textured_room")
     loop._truth_key, loop._truth = None, None
     first = loop.truth()
@@ -116,3 +151,12 @@ def test_truth_memo_follows_set_pose_and_stays_read_only():
     np.testing.assert_allclose(moved.p_WB - first.p_WB, [0.3, 0.0, 0.0], atol=1e-12)
     with pytest.raises(ValueError):
         moved.p_WB[0] = 0.0
+
+
+def test_reward_sums_in_floats_equal_numpy_sums():
+    """Under 8 entries numpy sums left to right, as the float path does; from 8 on it is numpy's sum."""
+    rng = np.random.default_rng(2)
+    for n in (1, 3, 4, 7, 8, 12):
+        for _ in range(200):
+            a, b = rng.normal(size=n) * 10.0 ** rng.uniform(-4, 4, n), rng.normal(size=n)
+            assert rewards._sum_sq_diff(a, b) == float(np.sum((a - b) ** 2))

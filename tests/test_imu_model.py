@@ -206,3 +206,42 @@ def test_single_sample_rejects_bad_input():
         model.measure(0.0, np.zeros(2), np.zeros(3))
     with pytest.raises(ValueError, match="finite"):
         model.measure(0.0, np.array([0.0, np.nan, 0.0]), np.zeros(3))
+
+
+def test_block_drawn_normals_equal_per_sample_draws_across_mixed_calls(monkeypatch):
+    """Blocks drawn ahead give the per-call draws' output, over block boundaries and mixed calls.
+
+    Single samples are served from blocks, a series takes the rest of a block: the output must equal one
+    ``standard_normal((n, 4, 3))`` per call (the form before the blocks).
+    """
+    params = imu_preset("adis16448")
+    rng = np.random.default_rng(1)
+    n = 700
+    t = np.arange(n) / params.rate_hz
+    omega = rng.normal(scale=0.5, size=(n, 3))
+    f = rng.normal(scale=1.0, size=(n, 3)) + [0.0, 0.0, 9.81]
+    plan = [("one", 200), ("series", 40), ("one", 100), ("series", 1), ("series", 90), ("one", 269)]
+    assert sum(k for _, k in plan) == n
+
+    def run(model):
+        out, i = [], 0
+        for kind, k in plan:
+            if kind == "one":
+                out += [np.concatenate([s.gyro_B_rad_s, s.accel_B_m_s2]) for s in
+                        (model.measure(t[j], omega[j], f[j]) for j in range(i, i + k))]  # fmt: skip
+            else:
+                s = model.measure_series(t[i : i + k], omega[i : i + k], f[i : i + k])
+                out += list(np.hstack([s.gyro_B_rad_s, s.accel_B_m_s2]))
+            i += k
+        return np.array(out), model.gyro_bias_rad_s
+
+    blocks = run(ImuModel(params, np.random.default_rng(5)))
+    with monkeypatch.context() as m:
+        m.setattr(
+            ImuModel,
+            "_scaled_draws",
+            lambda self, k: self._rng.standard_normal((k, 4, 3)) * self._sigmas[None, :, None],
+        )
+        per_call = run(ImuModel(params, np.random.default_rng(5)))
+    np.testing.assert_array_equal(blocks[0], per_call[0])
+    np.testing.assert_array_equal(blocks[1], per_call[1])

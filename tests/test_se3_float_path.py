@@ -171,3 +171,25 @@ def test_records_check_all_fields_in_one_buffer_and_name_the_bad_one():
     sp = FlatOutput(p_W=source)
     source[0] = 9.0  # a copy: the record does not follow its input
     assert sp.p_W[0] == 0.5
+
+
+def test_thrusts_from_estimate_equals_thrusts_on_the_record(vehicle):
+    """No navigation record on the per-tick path: the same thrusts bit for bit, the same errors."""
+    from viotb.vio.types import StateEstimate
+
+    rng = np.random.default_rng(11)
+    a, b = SE3Controller(vehicle, SE3Gains()), SE3Controller(vehicle, SE3Gains())
+    for k in range(200):
+        x, sp = _random_state(rng, 1.0), _random_setpoint(rng, 1.0)
+        est = StateEstimate(t_s=0.004 * k, R_WB=x.R_WB, p_WB=x.p_WB, v_WB=x.v_WB, omega_B_rad_s=x.omega_B)
+        t = 0.004 * k
+        np.testing.assert_array_equal(
+            a.thrusts_from_estimate(t, est, sp), b.thrusts(t, NavState.from_estimate(est), sp)
+        )
+    np.testing.assert_array_equal(a.integral_m_s, b.integral_m_s)
+    bad = StateEstimate(t_s=1.0, R_WB=np.eye(3), p_WB=np.array([0.0, np.nan, 0.0]), v_WB=np.zeros(3))
+    with pytest.raises(ValueError, match=r"NavState\.p_WB: non-finite"):
+        a.thrusts_from_estimate(1.0, bad, sp)
+    wrong = StateEstimate(t_s=1.0, R_WB=np.eye(3), p_WB=np.zeros(2), v_WB=np.zeros(3))
+    with pytest.raises(ValueError, match=r"NavState\.p_WB: expected shape"):
+        a.thrusts_from_estimate(1.0, wrong, sp)

@@ -55,6 +55,25 @@ def _check_points(p: np.ndarray, name: str) -> np.ndarray:
     return arr
 
 
+def posyaw_alignment(mu_est: np.ndarray, mu_gt: np.ndarray, num: float, den: float) -> Alignment:
+    """The 4-DOF (yaw + translation) alignment from the centred sums of :func:`align_umeyama`.
+
+    The yaw maximizing ``sum y_i . Rz x_i`` over the centred points ``x = p_est - mu_est``,
+    ``y = p_gt - mu_gt`` has ``tan(yaw) = num / den``; streamed metrics accumulate the sums in chunks.
+
+    Args:
+        mu_est: Mean estimated position (m), shape (3,).
+        mu_gt: Mean ground-truth position (m), shape (3,).
+        num: ``sum(x_x y_y - x_y y_x)`` (m^2).
+        den: ``sum(x_x y_x + x_y y_y)`` (m^2).
+
+    Returns:
+        The :class:`Alignment` ``p_gt ~= Rz p_est + t`` (scale 1).
+    """
+    R = rotz(np.arctan2(num, den))
+    return Alignment(R, mu_gt - R @ mu_est, 1.0)
+
+
 def align_umeyama(p_est: np.ndarray, p_gt: np.ndarray, mode: str = "posyaw") -> Alignment:
     """Least-squares alignment of estimated positions onto ground truth.
 
@@ -78,11 +97,10 @@ def align_umeyama(p_est: np.ndarray, p_gt: np.ndarray, mode: str = "posyaw") -> 
     mu_est, mu_gt = p_est.mean(axis=0), p_gt.mean(axis=0)
     x, y = p_est - mu_est, p_gt - mu_gt
     if mode == "posyaw":
-        # 2a. Yaw maximizing sum y_i . Rz x_i: tan(yaw) = sum(x_e y_g - y_e x_g) / sum(x_e x_g + y_e y_g).
+        # 2a. Yaw maximizing sum y_i . Rz x_i (posyaw_alignment).
         num = float(np.sum(x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0]))
         den = float(np.sum(x[:, 0] * y[:, 0] + x[:, 1] * y[:, 1]))
-        R = rotz(np.arctan2(num, den))
-        return Alignment(R, mu_gt - R @ mu_est, 1.0)
+        return posyaw_alignment(mu_est, mu_gt, num, den)
     # 2b. Cross-covariance and its SVD with the reflection guard (eqs. 38-43).
     n = p_est.shape[0]
     cov = y.T @ x / n

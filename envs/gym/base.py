@@ -26,8 +26,9 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 from viotb.controllers import Mixer, SE3Controller, SE3Gains
-from viotb.controllers.types import FlatOutput, NavState
+from viotb.controllers.types import FlatOutput
 from viotb.envs.gym.config import FAILURE_REASONS, RENDER_CAMERAS, VioEnvConfig, make_config
+from viotb.envs.gym.info import step_info
 from viotb.envs.gym.rewards import cost_crash, cost_effort, cost_smoothness, reward_tracking
 from viotb.envs.gym.starts import ground_start, place_airborne, randomize_sensor_and_body, rig_config
 from viotb.envs.run.closed_loop import ClosedLoopSim
@@ -82,7 +83,8 @@ class VioQuadEnv(gymnasium.Env):
     diagonals (3 + 3) and the tracked-feature count (1). ``obs_mode="dict"`` adds ``image`` (the last onboard
     gray frame, (H, W, 1) uint8) and ``imu`` (the last ``imu_window`` raw IMU samples, gyro then
     accelerometer, (K, 6)). Ground truth is only in ``info`` (``p_true_W_m``, ``v_true_W_m_s``,
-    ``R_true_WB``, ``position_error_m``, ``estimate_error_m``).
+    ``R_true_WB``, ``position_error_m``, ``estimate_error_m``; ``info="flat"`` keeps only the scalars, the
+    cheap form for vector envs: :mod:`viotb.envs.gym.info`).
 
     ## Rewards Sum of ``info["reward_components"]`` (also ``info["reward_<name>"]``), computed from the TRUE
     position: ``tracking = w * exp(-|p - p_target| / tracking_scale_m)``, ``effort = -w |a - a_hover|^2``,
@@ -151,8 +153,9 @@ class VioQuadEnv(gymnasium.Env):
         self._mixer = Mixer(self._vehicle)
         self._neutral = self._neutral_action()
         lo, hi = SCENE_BOUNDS_M[cfg.scene]
-        self._arena_lo = np.asarray(lo) + cfg.arena_margin_m
-        self._arena_hi = np.asarray(hi) - cfg.arena_margin_m
+        # The arena box as float triples (the per-step test compares floats, not arrays).
+        self._arena_lo = tuple((np.asarray(lo) + cfg.arena_margin_m).tolist())
+        self._arena_hi = tuple((np.asarray(hi) - cfg.arena_margin_m).tolist())
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
         self.observation_space = self._observation_space()
         state_space = self.observation_space if cfg.obs_mode == "state" else self.observation_space["state"]
@@ -162,6 +165,7 @@ class VioQuadEnv(gymnasium.Env):
         self._renderer = None
         self._imu: deque = deque(maxlen=cfg.imu_window)
         self._setpoint_cache: tuple[tuple, FlatOutput] | None = None
+        self._target_key: tuple | None = None
         self._terminated = False
 
     @property
@@ -272,7 +276,7 @@ class VioQuadEnv(gymnasium.Env):
             )
         else:
             setpoint = self._position_setpoint(a)
-        return self._controller.thrusts(self._loop.t_s, NavState.from_estimate(est), setpoint)
+        return self._controller.thrusts_from_estimate(self._loop.t_s, est, setpoint)
 
     def _position_setpoint(self, a: np.ndarray) -> FlatOutput:
         """Setpoint of the ``position`` action: constant over a policy step, so built once per step.
@@ -302,6 +306,7 @@ class VioQuadEnv(gymnasium.Env):
         self._loop = loop
         randomize_sensor_and_body(loop, cfg, rng)
         self._R_EW, self._t_EW = np.eye(3), np.zeros(3)
+        self._target_key = None  # the estimator frame is new: recompute the target in it
         if cfg.start == "air":
             place_airborne(loop, cfg, rng)
         else:
@@ -336,11 +341,25 @@ class VioQuadEnv(gymnasium.Env):
             self._imu.append(imu)
 
     def _update_target(self) -> None:
-        """Target now, in the world (reward) and estimator (observation) frames."""
+        """Target now, in the world (reward) and estimator (observation) frames.
+
+        The estimator-frame target is recomputed only when the world target changes (Hover's never does;
+        the values are the same, memoized on the target's bytes).
+        """
         p, v = self._target_W(self._t_task)
         self._target_true_W, self._target_v_W = p, v
-        self._target_est = self._R_EW @ p + self._t_EW
-        self._target_v_est = self._R_EW @ v
+        key = (p.tobytes(), v.tobytes())
+        if key != self._target_key:
+            self._target_key = key
+            self._target_est = self._R_EW @ p + self._t_EW
+            self._target_v_est = self._R_EW @ v
+
+    def _outside_arena(self, p_W: np.ndarray) -> bool:
+        """Whether a true position (m), shape (3,), is outside the arena box (float comparisons)."""
+        p0, p1, p2 = p_W.tolist()
+        lo0, lo1, lo2 = self._arena_lo
+        hi0, hi1, hi2 = self._arena_hi
+        return p0 < lo0 or p1 < lo1 or p2 < lo2 or p0 > hi0 or p1 > hi1 or p2 > hi2
 
     def step(self, action):
         """Hold ``action`` for ``ctrl_dt``; returns ``(obs, reward, terminated, truncated, info)``."""
@@ -368,7 +387,7 @@ class VioQuadEnv(gymnasium.Env):
         tr = loop.truth()
         if not reason and loop.health().diverged:
             reason = "diverged"
-        if not reason and ((tr.p_WB < self._arena_lo).any() or (tr.p_WB > self._arena_hi).any()):
+        if not reason and self._outside_arena(tr.p_WB):
             reason = "left_arena"
         err = float(np.linalg.norm(tr.p_WB - self._target_true_W))
         if not reason and err > self.config.max_target_distance_m:
@@ -435,29 +454,10 @@ class VioQuadEnv(gymnasium.Env):
         return {"state": state, "image": image, "imu": imu}
 
     def _get_info(self, components: dict[str, float], reason: str) -> dict:
-        """Ground truth and diagnostics (never part of the observation)."""
-        tr = self._loop.truth()
-        est = self._loop.estimate()
-        health = self._loop.health()
-        info = {
-            "t_s": tr.t_s,
-            "p_true_W_m": tr.p_WB.copy(),
-            "v_true_W_m_s": tr.v_WB.copy(),
-            "R_true_WB": tr.R_WB.copy(),
-            "target_W_m": self._target_true_W.copy(),
-            "position_error_m": float(np.linalg.norm(tr.p_WB - self._target_true_W)),
-            "estimate_error_m": np.nan,
-            "tracked_features": int(health.tracked_features),
-            "conditions": tuple(health.conditions),
-            "termination_reason": reason,
-            "reward_components": dict(components),
-        }
-        if est is not None:
-            p_est_W = self._R_EW.T @ (est.p_WB - self._t_EW)
-            info["estimate_error_m"] = float(np.linalg.norm(p_est_W - tr.p_WB))
-        for name, value in components.items():
-            info[f"reward_{name}"] = value
-        return info
+        """Ground truth and diagnostics (never part of the observation; ``config.info``'s form)."""
+        return step_info(
+            self._loop, self._target_true_W, self._R_EW, self._t_EW, components, reason, self.config.info
+        )
 
     # ------------------------------------------------------------------ render and close
 

@@ -13,6 +13,8 @@ from viotb.vio.factory import ESTIMATOR_NAMES, FRONTEND_NAMES
 ACTION_TYPES = ("motors", "ctbr", "velocity", "position")
 """``motors``: normalized thrusts; ``ctbr``: collective thrust + body rates; ``velocity`` / ``position``:
 setpoints through the SE(3) controller."""
+INFO_MODES = ("full", "flat")
+"""``info`` per step: ``full`` (truth arrays, conditions, nested reward terms) or ``flat`` (scalars only)."""
 OBS_MODES = ("state", "dict")
 """``state``: one flat Box; ``dict``: ``{"state", "image", "imu"}``."""
 ORIENTATIONS = ("rot6d", "quat")
@@ -169,6 +171,8 @@ class VioEnvConfig:
         start: ``air`` (airborne at the start point, estimator initialized from perturbed truth) or
             ``ground`` (on the floor below it: estimator initialization and a takeoff run inside ``reset``).
         obs_mode: One of :data:`OBS_MODES`.
+        info: ``full`` (truth arrays, conditions, nested reward terms) or ``flat`` (the scalars only, for
+            vector envs): ``viotb.envs.gym.info.INFO_MODES``.
         orientation: ``rot6d`` (first two columns of ``R_WB``) or ``quat`` (``quat_wxyz``, w >= 0).
         imu_window: Number of recent IMU samples in the ``imu`` entry of the dict observation.
         start_p_W_m: Start point (m); the hover point of Hover, the first point of the other tasks.
@@ -209,6 +213,7 @@ class VioEnvConfig:
     inner_ctrl_dt: float = 0.005
     start: str = "air"
     obs_mode: str = "state"
+    info: str = "full"
     orientation: str = "rot6d"
     imu_window: int = 10
     start_p_W_m: tuple[float, float, float] = (0.0, 0.0, 1.5)
@@ -246,6 +251,7 @@ class VioEnvConfig:
             "scene": tuple(SCENE_BOUNDS_M),
             "start": STARTS,
             "obs_mode": OBS_MODES,
+            "info": INFO_MODES,
             "orientation": ORIENTATIONS,
             "render_camera": RENDER_CAMERAS,
         }

@@ -10,14 +10,25 @@ def reward_tracking(position_error_m: float, weight: float, scale_m: float) -> f
     return float(weight * np.exp(-position_error_m / scale_m))
 
 
+def _sum_sq_diff(a: np.ndarray, b: np.ndarray) -> float:
+    """``np.sum((a - b) ** 2)``; under 8 entries in floats, left to right as numpy sums them (no arrays)."""
+    d = (a - b).tolist()
+    if len(d) >= 8:  # numpy's pairwise summation starts at 8 entries
+        return float(np.sum(np.square(d)))
+    total = 0.0
+    for x in d:
+        total += x * x
+    return total
+
+
 def cost_effort(action: np.ndarray, neutral_action: np.ndarray, weight: float) -> float:
     """``-weight * |a - a_hover|^2``: action away from the one that holds a hover."""
-    return float(-weight * np.sum((action - neutral_action) ** 2))
+    return float(-weight * _sum_sq_diff(action, neutral_action))
 
 
 def cost_smoothness(action: np.ndarray, previous_action: np.ndarray, weight: float) -> float:
     """``-weight * |a_k - a_{k-1}|^2``: action changes between policy steps."""
-    return float(-weight * np.sum((action - previous_action) ** 2))
+    return float(-weight * _sum_sq_diff(action, previous_action))
 
 
 def cost_crash(failed: bool, weight: float) -> float:

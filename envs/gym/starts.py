@@ -81,6 +81,7 @@ def randomize_sensor_and_body(loop: ClosedLoopSim, cfg: VioEnvConfig, rng: np.ra
         model.body_mass[body] *= mass_scale
         model.body_inertia[body] *= mass_scale
         mujoco.mj_setConst(model, loop.sim.data)
+        loop.sim.model_changed()
 
 
 def place_airborne(loop: ClosedLoopSim, cfg: VioEnvConfig, rng: np.random.Generator) -> None:

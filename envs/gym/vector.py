@@ -48,7 +48,8 @@ def make_vector_env(
 
     ``async`` workers are spawned (a fresh interpreter: no GL context or thread pool inherited from this
     process) and each limits its threads (:func:`limit_worker_threads`); ``sync`` copies run in this process
-    and leave its threads alone.
+    and leave its threads alone. Pass ``info="flat"`` for training: the vector env merges every ``info`` key
+    of every copy at every step, and the flat form keeps only the scalars (:mod:`viotb.envs.gym.info`).
 
     Raises:
         ValueError: Unknown ``mode`` or ``num_envs < 1``.

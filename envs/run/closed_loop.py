@@ -153,14 +153,19 @@ class ClosedLoopSim:
         self._body_id = self.sim.model.body(QUAD_BODY).id
         self._bounds = SCENE_BOUNDS_M.get(config.scene)
         # Crash box: the scene bounds widened by 0.5 m (built once; read every low-level tick).
-        self._crash_lo = None if self._bounds is None else np.subtract(self._bounds[0], 0.5)
-        self._crash_hi = None if self._bounds is None else np.add(self._bounds[1], 0.5)
+        # Crash box as float triples (the per-tick test compares floats, not arrays).
+        self._crash_lo = None if self._bounds is None else tuple(np.subtract(self._bounds[0], 0.5).tolist())
+        self._crash_hi = None if self._bounds is None else tuple(np.add(self._bounds[1], 0.5).tolist())
         # truth() memo: the TruthState of one physics state, keyed on (time, qpos, qvel) (see truth()).
         self._truth_key: tuple | None = None
         self._truth: TruthState | None = None
         self._truth_fed: TruthState | None = None
         self._pending: deque[tuple[float, CameraFrame]] = deque()
         self._wind_gust_W = (0.0, 0.0, 0.0)  # gust force (N) in W, plain floats
+        # The gust's normals, 256 triples drawn at once: the same draws in the same order as one
+        # standard_normal(3) per update (numpy's Generator keeps no state between calls).
+        self._wind_normals: list[list[float]] = []
+        self._wind_next = 0
         self._gust_decay: dict[tuple[float, float], tuple[float, float]] = {}
         self._step_count = 0
         self.last_frame: CameraFrame | None = None
@@ -232,8 +237,11 @@ class ClosedLoopSim:
         tr = self.truth()
         if tr.R_WB[2, 2] < _COS_MAX_TILT:
             return True
-        if self._bounds is not None:
-            if (tr.p_WB < self._crash_lo).any() or (tr.p_WB > self._crash_hi).any():
+        if self._crash_lo is not None:
+            p0, p1, p2 = tr.p_WB.tolist()
+            lo0, lo1, lo2 = self._crash_lo
+            hi0, hi1, hi2 = self._crash_hi
+            if p0 < lo0 or p1 < lo1 or p2 < lo2 or p0 > hi0 or p1 > hi1 or p2 > hi2:
                 return True
         return airborne and self.sim.in_collision()
 
@@ -320,7 +328,10 @@ class ClosedLoopSim:
                 decay = self._gust_decay[key] = (a, float(np.sqrt(1.0 - a * a)))
             a, scale = decay
             # Per axis in plain floats: (n sigma) scale, then a g + noise, the vertical noise zero.
-            n0, n1, _ = self._rng_wind.standard_normal(3).tolist()
+            if self._wind_next == len(self._wind_normals):
+                self._wind_normals, self._wind_next = self._rng_wind.standard_normal((256, 3)).tolist(), 0
+            n0, n1, _ = self._wind_normals[self._wind_next]
+            self._wind_next += 1
             sigma = w.gust_sigma_N
             g0, g1, g2 = self._wind_gust_W
             self._wind_gust_W = (a * g0 + n0 * sigma * scale, a * g1 + n1 * sigma * scale, a * g2 + 0.0)

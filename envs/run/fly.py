@@ -17,15 +17,16 @@ truth frame by the 4-DOF (yaw + translation) gauge fixed at initialization, whic
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 from viotb.controllers import SE3Controller, SE3Gains
-from viotb.controllers.types import NavState
 from viotb.envs.run.closed_loop import ClosedLoopSim
 from viotb.envs.run.flight_log import FlightLog
+from viotb.envs.run.flight_metrics import blackout_metrics, flight_metrics, lights_out_metrics
 from viotb.envs.run.loop_glue import FlightLoopClosure, LoopOptions, require_images
 from viotb.envs.run.mission import TakeoffSequence
 from viotb.envs.scenarios.failures import failure_fly_scenario
@@ -34,7 +35,6 @@ from viotb.envs.sim.rig import RigConfig
 from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
-from viotb.vio.metrics import align_umeyama
 from viotb.vio.recovery import RecoveringEstimator
 
 ProgressFn = Callable[[float, float], None]
@@ -48,6 +48,11 @@ def _gauge(est_R: np.ndarray, est_p: np.ndarray, true_R: np.ndarray, true_p: np.
     dyaw = yaw_from_rotmat(true_R) - yaw_from_rotmat(est_R)
     R = rotz(dyaw)
     return R, true_p - R @ est_p
+
+
+def _gauge_floats(R_g: np.ndarray, t_g: np.ndarray) -> tuple[float, float, float, float, float]:
+    """``(cos, sin, t_x, t_y, t_z)`` of a gauge ``(R_g = rotz(yaw), t_g)`` from :func:`_gauge`."""
+    return (float(R_g[0, 0]), float(R_g[1, 0]), *t_g.tolist())
 
 
 def fly(
@@ -144,12 +149,12 @@ def fly(
         setpoint = seq.update(loop.t_s, est, loop.estimator)
         if on_ground and seq.phase != "ground":
             tr = loop.truth()
-            gauge = _gauge(est.R_WB, est.p_WB, tr.R_WB, tr.p_WB)
+            gauge = _gauge_floats(*_gauge(est.R_WB, est.p_WB, tr.R_WB, tr.p_WB))
         phase = seq.phase
         if phase == "ground" or est is None or setpoint is None:
             thrusts = np.zeros(4)
         else:
-            thrusts = controller.thrusts(loop.t_s, NavState.from_estimate(est), setpoint)
+            thrusts = controller.thrusts_from_estimate(loop.t_s, est, setpoint)
         loop.advance(thrusts, ctrl_dt)
         tr = loop.truth()
         airborne = phase != "ground" and (loop.t_s - seq.plan_t0_s > 1.0 or phase != "takeoff")
@@ -188,12 +193,12 @@ def fly(
             break
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     loop.close()
-    metrics = _metrics(log, seq.mission_t0_s, seq.init_t_s)
+    metrics = flight_metrics(log, seq.mission_t0_s, seq.init_t_s)
     metrics["notes"] = _null_notes(
         metrics, seq.init_t_s, seq.mission_t0_s, float(loop.t_s), crashed or diverged
     )
-    metrics.update(_blackout_metrics(log, rig.camera.blackout_intervals_s))
-    metrics.update(_lights_out_metrics(log, rig.lights_off_intervals_s))
+    metrics.update(blackout_metrics(log, rig.camera.blackout_intervals_s))
+    metrics.update(lights_out_metrics(log, rig.lights_off_intervals_s))
     events = loop.estimator.events if isinstance(loop.estimator, RecoveringEstimator) else []
     metrics.update(
         {
@@ -259,108 +264,34 @@ def _null_notes(
 
 
 def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, tr, thrusts) -> None:
-    """Append one control tick to the log (setpoint and estimate mapped to the truth frame by the gauge)."""
+    """Append one control tick to the log (setpoint and estimate mapped to the truth frame by the gauge).
+
+    The gauge is a yaw about z and a translation, applied in floats (:func:`_gauge_floats`): the values
+    equal the matrix form ``R_g @ p + t_g``, ``sqrt(diag(R_g C R_g^T))``, ``yaw(R_g R_WB)`` to round-off.
+    """
     imu = loop.last_imu
-    nan = np.nan
-    p_est = p_sigma = p_set = nan
-    yaw_est = nan
-    if est is not None and gauge is not None:
-        R_g, t_g = gauge
-        p_est = R_g @ est.p_WB + t_g
-        cov_p = R_g @ est.cov_position_W_m2 @ R_g.T
-        p_sigma = np.sqrt(np.clip(np.diag(cov_p), 0.0, None))
-        yaw_est = yaw_from_rotmat(R_g @ est.R_WB)
-    if setpoint is not None and gauge is not None:
-        p_set = gauge[0] @ setpoint.p_W + gauge[1]
-    log.append_tick(
-        loop.t_s,
+    nan3 = (math.nan, math.nan, math.nan)
+    p_est = p_sigma = p_set = nan3
+    yaw_est = math.nan
+    if gauge is not None:
+        c, s, t0, t1, t2 = gauge
+        if est is not None:
+            x, y, z = est.p_WB.tolist()
+            p_est = (c * x - s * y + t0, s * x + c * y + t1, z + t2)
+            (cxx, cxy, _), (cyx, cyy, _), (_, _, czz) = est.cov_position_W_m2.tolist()
+            vxx = c * c * cxx - c * s * (cxy + cyx) + s * s * cyy
+            vyy = s * s * cxx + c * s * (cxy + cyx) + c * c * cyy
+            p_sigma = (math.sqrt(max(vxx, 0.0)), math.sqrt(max(vyy, 0.0)), math.sqrt(max(czz, 0.0)))
+            (r00, _, _), (r10, _, _), _ = est.R_WB.tolist()
+            yaw_est = math.atan2(s * r00 + c * r10, c * r00 - s * r10)
+        if setpoint is not None:
+            x, y, z = setpoint.p_W.tolist()
+            p_set = (c * x - s * y + t0, s * x + c * y + t1, z + t2)
+    gyro, accel = (nan3, nan3) if imu is None else (imu.gyro_B_rad_s.tolist(), imu.accel_B_m_s2.tolist())
+    # The row in FlightLog's column order: t_s, p_true_W, p_est_W, p_sigma_W, p_set_W, yaw_true, yaw_est,
+    # thrusts_N, gyro_B, accel_B.
+    log.append_row(
         phase,
-        p_true_W=tr.p_WB,
-        p_est_W=p_est,
-        p_sigma_W=p_sigma,
-        p_set_W=p_set,
-        yaw_true=yaw_from_rotmat(tr.R_WB),
-        yaw_est=yaw_est,
-        thrusts_N=thrusts,
-        gyro_B=nan if imu is None else imu.gyro_B_rad_s,
-        accel_B=nan if imu is None else imu.accel_B_m_s2,
-    )
-
-
-def _blackout_metrics(log: FlightLog, blackouts: tuple) -> dict:
-    """Excursion during each camera blackout (+1 s) and whether tracking came back after it.
-
-    Returns ``{}`` without blackouts, else ``blackout_excursion_m`` (largest truth-to-setpoint distance
-    from the start of a blackout to 1 s after its end), ``blackout_est_err_m`` (largest estimate error in
-    that span) and ``blackout_recovered`` (every blackout is followed, within 1 s, by a frame with >= 20
-    tracked features).
-    """
-    if not blackouts:
-        return {}
-    t = np.asarray(log.t_s)
-    err_set = np.linalg.norm(np.asarray(log.p_true_W) - np.asarray(log.p_set_W), axis=1)
-    err_est = np.linalg.norm(np.asarray(log.p_est_W) - np.asarray(log.p_true_W), axis=1)
-    ft, nf = np.asarray(log.frame_t_s), np.asarray(log.frame_features)
-    excursion, est_err, recovered = 0.0, 0.0, True
-    for a, b in blackouts:
-        m = (t >= a) & (t <= b + 1.0)
-        if not np.any(m):
-            recovered = False
-            continue
-        excursion = max(excursion, float(np.nanmax(err_set[m])))
-        est_err = max(est_err, float(np.nanmax(err_est[m])))
-        after = (ft > b) & (ft <= b + 1.0)
-        recovered = recovered and bool(np.any(nf[after] >= 20))
-    return {"blackout_excursion_m": excursion, "blackout_est_err_m": est_err, "blackout_recovered": recovered}
-
-
-def _lights_out_metrics(log: FlightLog, intervals: tuple, back_m: float = 0.10) -> dict:
-    """How far the drone strays while the lights are out and how fast it is back at the hold point.
-
-    Returns ``{}`` without lights-out intervals, else ``lights_out_excursion_m`` (largest truth-to-setpoint
-    distance from the first light-off to the end of the flight) and ``lights_out_back_s``: for the last
-    interval, the time (s) after the light returns from which that distance stays below ``back_m`` until the
-    end of the flight (0 if it never left; None if it is not back by the end).
-    """
-    if not intervals:
-        return {}
-    t = np.asarray(log.t_s)
-    err = np.linalg.norm(np.asarray(log.p_true_W) - np.asarray(log.p_set_W), axis=1)
-    after = t >= intervals[0][0]
-    out: dict = {"lights_out_excursion_m": float(np.nanmax(err[after])) if np.any(after) else None}
-    end = intervals[-1][1]
-    m = t >= end
-    if not np.any(m):
-        out["lights_out_back_s"] = None
-        return out
-    far = np.flatnonzero(~(err[m] < back_m))  # NaN (no setpoint) counts as not back
-    if len(far) == 0:
-        out["lights_out_back_s"] = 0.0
-    elif far[-1] == int(np.sum(m)) - 1:
-        out["lights_out_back_s"] = None
-    else:
-        out["lights_out_back_s"] = float(t[m][far[-1] + 1] - end)
-    return out
-
-
-def _metrics(log: FlightLog, mission_t0: float | None, init_time: float | None) -> dict:
-    """Tracking and estimation metrics of a flight log."""
-    t = np.asarray(log.t_s)
-    p_true = np.asarray(log.p_true_W)
-    p_est = np.asarray(log.p_est_W)
-    p_set = np.asarray(log.p_set_W)
-    out: dict = {"hover_rms_m": None, "max_err_m": None, "ate_posyaw_m": None, "est_rms_m": None}
-    if mission_t0 is not None:
-        m = t >= mission_t0
-        err = np.linalg.norm(p_true[m] - p_set[m], axis=1)
-        if err.size:
-            out["hover_rms_m"] = float(np.sqrt(np.mean(err**2)))
-            out["max_err_m"] = float(np.max(err))
-    ok = np.all(np.isfinite(p_est), axis=1)
-    if init_time is not None and ok.sum() >= 3:
-        est_err = np.linalg.norm(p_est[ok] - p_true[ok], axis=1)
-        out["est_rms_m"] = float(np.sqrt(np.mean(est_err**2)))
-        al = align_umeyama(p_est[ok], p_true[ok], "posyaw")
-        aligned = (al.s * (al.R @ p_est[ok].T)).T + al.t
-        out["ate_posyaw_m"] = float(np.sqrt(np.mean(np.sum((aligned - p_true[ok]) ** 2, axis=1))))
-    return out
+        [loop.t_s, *tr.p_WB.tolist(), *p_est, *p_sigma, *p_set, yaw_from_rotmat(tr.R_WB), yaw_est,
+         *np.asarray(thrusts, dtype=float).tolist(), *gyro, *accel],
+    )  # fmt: skip

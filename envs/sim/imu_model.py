@@ -22,6 +22,8 @@ from viotb.vio.types import ImuNoise, ImuSample, ImuSeries
 _DEG = math.pi / 180.0
 _G = 9.80665  # standard gravity for datasheet "g" ranges (m/s^2)
 _CHUNK_SAMPLES = 65536  # samples generated per vectorized block (bounds memory on long logs)
+_BLOCK_SAMPLES = 256
+"""Samples' normals drawn at once for :meth:`ImuModel.measure` (one generator call per 256 samples)."""
 
 
 @dataclass(frozen=True)
@@ -192,7 +194,9 @@ class ImuModel:
 
     The constructor draws the turn-on biases, scale factors and misalignments. Each measurement then
     draws 12 normals in the order [gyro white, accel white, gyro walk, accel walk], so
-    :meth:`measure` called N times and :meth:`measure_series` on N samples give identical output.
+    :meth:`measure` called N times and :meth:`measure_series` on N samples give identical output. Single
+    samples take their normals from blocks of 256 samples drawn ahead, so the generator runs ahead of the
+    samples read: give the model a generator of its own.
 
     Args:
         params: Sensor parameters.
@@ -218,6 +222,31 @@ class ImuModel:
                 n.accel_random_walk_m_s3_sqrthz * math.sqrt(dt),
             ]
         )
+        self._block = np.zeros((0, 4, 3))  # scaled draws made ahead for single samples (_scaled_draws)
+        self._block_next = 0
+
+    def _scaled_draws(self, n: int) -> np.ndarray:
+        """The next ``n`` samples' normals times their sigmas, shape (n, 4, 3), in the generator's order.
+
+        A single sample (:meth:`measure`, every IMU period of the closed loop) is served from a block of
+        :data:`_BLOCK_SAMPLES` drawn at once; a series takes what is left of the block, then draws the rest.
+        The normals and their order are those of one ``standard_normal((n, 4, 3))`` call per sample
+        (numpy's ``Generator`` keeps no state between calls), so the output does not depend on the split.
+        """
+        left = self._block.shape[0] - self._block_next
+        if n == 1:
+            if left == 0:
+                self._block = self._rng.standard_normal((_BLOCK_SAMPLES, 4, 3)) * self._sigmas[None, :, None]
+                self._block_next = 0
+            self._block_next += 1
+            return self._block[self._block_next - 1 : self._block_next]
+        take = min(left, n)
+        head = self._block[self._block_next : self._block_next + take]
+        self._block_next += take
+        if take == n:
+            return head
+        rest = self._rng.standard_normal((n - take, 4, 3)) * self._sigmas[None, :, None]
+        return np.concatenate([head, rest]) if take else rest
 
     @property
     def params(self) -> ImuModelParams:
@@ -263,7 +292,7 @@ class ImuModel:
             )
         if not (np.isfinite(omega).all() and np.isfinite(f).all()):
             raise ValueError("measure: omega_B_true and specific_force_B_true must be finite")
-        draws = self._rng.standard_normal((4, 3)) * self._sigmas[:, None]
+        draws = self._scaled_draws(1)[0]
         bias_g, bias_a = self._gyro_bias_rad_s, self._accel_bias_m_s2
         # Same expression shapes as the series ((1, 3) @ (3, 3)) so BLAS sums in the same order.
         gyro = (omega[None] @ self._M_gyro.T)[0] + bias_g + draws[0]
@@ -321,7 +350,7 @@ class ImuModel:
         bias_a = np.empty((n, 3))
         for start in range(0, n, _CHUNK_SAMPLES):
             stop = min(start + _CHUNK_SAMPLES, n)
-            draws = self._rng.standard_normal((stop - start, 4, 3)) * self._sigmas[None, :, None]
+            draws = self._scaled_draws(stop - start)
             # Bias used by sample k = b_0 + sum of the walk steps of samples < k (sequential order).
             walk_g = np.cumsum(np.concatenate([self._gyro_bias_rad_s[None], draws[:, 2]]), axis=0)
             walk_a = np.cumsum(np.concatenate([self._accel_bias_m_s2[None], draws[:, 3]]), axis=0)

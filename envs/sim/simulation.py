@@ -133,6 +133,8 @@ class Simulation:
         self._kin_v_W = np.zeros(3)
         self._kin_omega_B = np.zeros(3)
         self._kin_a_W = np.zeros(3)
+        self._forward_key: tuple | None = None  # the state of the last step's closing mj_forward
+        self._has_mocap = m.nmocap > 0
         mujoco.mj_forward(self.model, self.data)
 
     # ------------------------------------------------------------------ time and stepping
@@ -173,6 +175,7 @@ class Simulation:
         self._kin_v_W[:] = 0.0
         self._kin_omega_B[:] = 0.0
         self._kin_a_W[:] = 0.0
+        self._forward_key = None
         mujoco.mj_forward(self.model, self.data)
 
     def step(self, ctrl: np.ndarray | None = None, n_steps: int = 1) -> None:
@@ -206,10 +209,39 @@ class Simulation:
         """:meth:`step` for a ``ctrl`` already passed through :meth:`checked_ctrl` (or None)."""
         if n_steps < 1:
             raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+        m, d = self.model, self.data
         if ctrl is not None:
-            self.data.ctrl[:] = ctrl
-        mujoco.mj_step(self.model, self.data, n_steps)  # the same as n_steps calls, without their overhead
-        mujoco.mj_forward(self.model, self.data)
+            d.ctrl[:] = ctrl
+        key = self._forward_key
+        if key is not None and key == self._state_key():
+            # The last step's closing mj_forward computed this state's position and velocity stages (the
+            # collision test is most of them): finish the first step with MuJoCo's split step, mj_step2
+            # (mj_step = mj_step1 + mj_step2; mj_step1 is those stages and the position/velocity checks).
+            mujoco.mj_checkPos(m, d)
+            mujoco.mj_checkVel(m, d)
+            mujoco.mj_step2(m, d)
+            if n_steps > 1:
+                mujoco.mj_step(m, d, n_steps - 1)
+        else:
+            mujoco.mj_step(m, d, n_steps)  # the same as n_steps calls, without their overhead
+        mujoco.mj_forward(m, d)
+        self._forward_key = self._state_key()
+
+    def _state_key(self) -> tuple:
+        """What the position and velocity stages read from ``data``: time, ``qpos``, ``qvel`` (and mocap)."""
+        d = self.data
+        if self._has_mocap:
+            return (d.time, d.qpos.tobytes(), d.qvel.tobytes(), d.mocap_pos.tobytes(), d.mocap_quat.tobytes())
+        return (d.time, d.qpos.tobytes(), d.qvel.tobytes())
+
+    def model_changed(self) -> None:
+        """Call after editing the model's parameters (masses, inertias...): the next step starts afresh.
+
+        :meth:`step_checked` reuses the previous step's ``mj_forward`` for the position stage when the state
+        (time, ``qpos``, ``qvel``, mocap poses) is unchanged; an edited model invalidates it, which the state
+        cannot show.
+        """
+        self._forward_key = None
 
     # ------------------------------------------------------------------ kinematic driving
 

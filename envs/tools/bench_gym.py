@@ -32,6 +32,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import gymnasium
 import numpy as np
 import viotb.envs  # noqa: F401  (registers the ids)
+from viotb.envs.gym.config import INFO_MODES
 from viotb.envs.gym.vector import VECTOR_MODES, make_vector_env
 
 SETUPS = {
@@ -93,6 +94,7 @@ def bench(
     repeats: int,
     seconds: float | None = None,
     vector: str = "async",
+    info: str = "full",
 ) -> dict:
     """Median env steps/s and real-time factors of one set-up, single env and vector env (interleaved).
 
@@ -104,13 +106,15 @@ def bench(
         repeats: Measurements of each (the median is reported).
         seconds: Simulated seconds per measurement instead of ``n_steps`` (``seconds / ctrl_dt`` steps).
         vector: A key of :data:`~viotb.envs.gym.vector.VECTOR_MODES`.
+        info: The envs' ``info`` form (``VioEnvConfig.info``: ``full`` or ``flat``, the scalars only, which
+            a vector env merges at less cost).
 
     Raises:
         ValueError: Unknown ``vector``.
     """
     if vector not in VECTOR_MODES:
         raise ValueError(f"unknown vector mode {vector!r}; allowed: {', '.join(map(repr, VECTOR_MODES))}")
-    kwargs = {"action_type": "position", **SETUPS[setup]}
+    kwargs = {"action_type": "position", "info": info, **SETUPS[setup]}
     single = gymnasium.make("viotb/Hover-v0", **kwargs)
     ctrl_dt = single.unwrapped.dt
     if seconds is not None:
@@ -129,6 +133,7 @@ def bench(
     single_cpu = float(np.median([r[1] for r in single_runs]))
     out = {
         "ctrl_dt_s": ctrl_dt,
+        "info": info,
         "steps_per_measurement": n_steps,
         "single_steps_per_s": single_rate,
         "single_realtime_factor": single_rate * ctrl_dt,
@@ -153,6 +158,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--num-envs", type=int, default=2, help="copies in the vector env")
     parser.add_argument("--vector", default="async", choices=VECTOR_MODES, help="vector env kind")
     parser.add_argument("--repeats", type=int, default=3, help="measurements per set-up (median reported)")
+    parser.add_argument("--info", default="full", choices=INFO_MODES, help="the envs' info form")
     parser.add_argument(
         "--setups", nargs="+", default=list(SETUPS), choices=list(SETUPS), help="set-ups to measure"
     )
@@ -161,7 +167,7 @@ def main(argv: list[str] | None = None) -> dict:
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     result = {
-        setup: bench(setup, args.steps, args.num_envs, args.repeats, vector=args.vector)
+        setup: bench(setup, args.steps, args.num_envs, args.repeats, vector=args.vector, info=args.info)
         for setup in args.setups
     }
     print(json.dumps(result))

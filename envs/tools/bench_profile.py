@@ -12,7 +12,8 @@ shared machine, where only ratios are stable). Components are the cumulative tim
 - front end: the tracker's ``process``; update: ``MsckfEstimator._process`` less its propagation;
 - propagation: ``Propagator.propagate`` (per frame) and ``MsckfEstimator.estimate`` (the per-tick
   prediction to the newest IMU sample);
-- control: ``SE3Controller.update`` and the mission's ``TakeoffSequence.update``;
+- control: ``SE3Controller._thrusts_f`` (the SE(3) law and mixer behind ``update``, ``thrusts`` and
+  ``thrusts_from_estimate``) and the mission's ``TakeoffSequence.update``;
 - health monitor: ``HealthMonitor.observe_imu`` / ``observe_frame``; logging: ``fly._log_tick``;
 - other: the rest of the flight loop (scheduler, truth reads, crash test).
 """
@@ -31,7 +32,7 @@ COMPONENTS: tuple[tuple[str, tuple[tuple[str, str], ...], tuple[tuple[str, str],
     ("front end", (("vio/frontend.py", "process"),), ()),
     ("update", (("vio/msckf.py", "_process"),), (("vio/propagator.py", "propagate"),)),
     ("propagation", (("vio/propagator.py", "propagate"), ("vio/msckf.py", "estimate")), ()),
-    ("control", (("controllers/se3.py", "update"), ("run/mission.py", "update")), ()),
+    ("control", (("controllers/se3.py", "_thrusts_f"), ("run/mission.py", "update")), ()),
     ("health monitor", (("vio/health.py", "observe_imu"), ("vio/health.py", "observe_frame")), ()),
     ("logging", (("run/fly.py", "_log_tick"),), ()),
 )
