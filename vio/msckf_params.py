@@ -60,6 +60,8 @@ class MsckfParams:
         runaway_frames: Consecutive frames with most features failing the gate that declare divergence.
         runaway_min_features: Fewest gated features for a frame to count towards ``runaway_frames``.
         runaway_reject_ratio: Rejected fraction above which a frame counts as runaway.
+        max_slam_features: Most persistent (SLAM) landmarks kept in the state (:mod:`viotb.vio.slam_features`;
+            tracks longer than the window, with a cam1 view on a stereo rig). 0 (default): pure MSCKF.
     """
 
     max_clones: int = 11
@@ -87,6 +89,7 @@ class MsckfParams:
     runaway_frames: int = 10
     runaway_min_features: int = 5
     runaway_reject_ratio: float = 0.7
+    max_slam_features: int = 0
 
     def with_online_calibration(
         self, time_offset_sigma_s: float = 0.02, extrinsic_sigma_rad: float = 0.05

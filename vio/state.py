@@ -2,9 +2,10 @@
 
 The error state is ordered by blocks: ``imu`` (15) first, then the optional calibration blocks
 ``extrinsic`` (6: ``[dphi_BC, dp_BC]``) and ``time_offset`` (1), then one 6-dof block per pose clone
-(``[dtheta, dp]``), oldest first. Rotations use the right (body-frame) perturbation ``R = R_hat Exp(dtheta)``;
-every other quantity is additive. The IMU block is ordered ``[dtheta, dp, dv, dbg, dba]`` as in
-:class:`viotb.vio.types.StateEstimate`.
+(``[dtheta, dp]``, oldest first) and one 3-dof block per SLAM landmark (``slam@<id>``: ``dp_f`` in W,
+:mod:`viotb.vio.slam_features`), in the order they were added. Rotations use the right (body-frame)
+perturbation ``R = R_hat Exp(dtheta)``; every other quantity is additive. The IMU block is ordered
+``[dtheta, dp, dv, dbg, dba]`` as in :class:`viotb.vio.types.StateEstimate`.
 
 The covariance is owned by :class:`State` and changes only through the module functions below
 (``ekf_propagate``, ``ekf_update``, ``augment_clone``, ``marginalize``), as open_vins' ``StateHelper`` is the
@@ -105,6 +106,21 @@ class ClonePose:
     p_WB_fej: np.ndarray
 
 
+@dataclass
+class SlamLandmark:
+    """A persistent landmark in the state (global 3-D point; :mod:`viotb.vio.slam_features`).
+
+    Attributes:
+        feature_id: Track id of the front end (its key).
+        p_W: Current estimate (m) in W, shape (3,).
+        p_W_fej: First estimate (m), the value it was initialized with, shape (3,).
+    """
+
+    feature_id: int
+    p_W: np.ndarray
+    p_W_fej: np.ndarray
+
+
 class State:
     """IMU state, optional calibration and a window of pose clones, with their joint covariance.
 
@@ -143,6 +159,7 @@ class State:
         self.p_BC = np.array(p_BC, dtype=float)
         self.time_offset_s = float(time_offset_s)
         self.clones: dict[float, ClonePose] = {}
+        self.landmarks: dict[int, SlamLandmark] = {}
         self._blocks: dict[str, Block] = {IMU_BLOCK: Block(IMU_BLOCK, 0, IMU_DIM)}
         diag = [imu_cov]
         if extrinsic_cov is not None:
@@ -194,6 +211,15 @@ class State:
         """Block of the clone at camera time ``t_s``."""
         return self.block(self.clone_name(t_s))
 
+    @staticmethod
+    def landmark_name(feature_id: int) -> str:
+        """Block name of the SLAM landmark of track ``feature_id``."""
+        return f"slam@{int(feature_id)}"
+
+    def landmark_block(self, feature_id: int) -> Block:
+        """Block of the SLAM landmark of track ``feature_id``."""
+        return self.block(self.landmark_name(feature_id))
+
     @property
     def clone_times(self) -> np.ndarray:
         """Clone camera times (s), oldest first, shape (K,)."""
@@ -230,6 +256,9 @@ class State:
             for k, (_, clone) in enumerate(clones):
                 clone.R_WB = clone.R_WB @ dR[k]
                 clone.p_WB = clone.p_WB + dx[o[k] + 3]
+        for fid, lm in self.landmarks.items():
+            o = self._blocks[self.landmark_name(fid)].offset
+            lm.p_W = lm.p_W + dx[o : o + 3]
 
 
 def marginal_covariance(state: State, blocks: list[Block] | tuple[Block, ...]) -> np.ndarray:
@@ -350,6 +379,41 @@ def marginalize(state: State, block: Block) -> None:
     if current.name.startswith("clone@"):
         t = next(t for t in state.clones if State.clone_name(t) == current.name)
         del state.clones[t]
+    elif current.name.startswith("slam@"):
+        del state.landmarks[int(current.name[5:])]
+
+
+def augment_landmark(
+    state: State, feature_id: int, p_W: np.ndarray, cov_x_f: np.ndarray, cov_f_f: np.ndarray
+) -> Block:
+    """Append a SLAM landmark block with its covariance (open_vins ``StateHelper::initialize_invertible``).
+
+    Args:
+        state: The state (modified in place).
+        feature_id: Track id (must not be a landmark already).
+        p_W: Landmark position (m) in W, shape (3,); also its first estimate.
+        cov_x_f: Cross-covariance of the existing error state with the landmark error, shape (dim, 3).
+        cov_f_f: Landmark covariance, shape (3, 3).
+
+    Returns:
+        The new block.
+    """
+    if feature_id in state.landmarks:
+        raise ValueError(f"augment_landmark: feature {feature_id} is already a landmark")
+    n = state.dim
+    if cov_x_f.shape != (n, 3) or cov_f_f.shape != (3, 3):
+        raise ValueError(f"augment_landmark: covariance shapes {cov_x_f.shape}, {cov_f_f.shape}, dim {n}")
+    new = np.empty((n + 3, n + 3))
+    new[:n, :n] = state._cov
+    new[:n, n:] = cov_x_f
+    new[n:, :n] = cov_x_f.T
+    new[n:, n:] = cov_f_f
+    state._set_cov(new)
+    block = Block(State.landmark_name(feature_id), n, 3)
+    state._blocks[block.name] = block
+    p = np.array(p_W, dtype=float)
+    state.landmarks[int(feature_id)] = SlamLandmark(int(feature_id), p, p.copy())
+    return block
 
 
 def marginalize_oldest_clone(state: State) -> float | None:
