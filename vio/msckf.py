@@ -308,10 +308,11 @@ class MsckfEstimator:
             self.propagator.propagate_and_clone(st, frame.t_s)
             slam = p.max_slam_features > 0
             if slam:
+                n_before = len(st.landmarks)
                 lm_obs = marginalize_lost_landmarks(
                     st, landmark_observations(st, tracks, self.database.num_cameras)
                 )
-                n_lost = len(st.landmarks) - len(lm_obs.ids)
+                n_lost = n_before - len(lm_obs.ids)
             ids0, xy0, ids1, xy1 = tracks.ids, tracks.xy_norm, tracks.ids_right, tracks.xy_norm_right
             if slam and st.landmarks:  # a landmark's observations go to its own update, not the database
                 keep0, keep1 = ~np.isin(ids0, lm_obs.ids), ~np.isin(ids1, lm_obs.ids)

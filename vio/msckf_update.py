@@ -77,7 +77,7 @@ def track_random_walk_px2_per_px(p: MsckfParams) -> float:
     return p.klt.track_random_walk_px2_per_px if p.frontend == "klt" else 0.0
 
 
-def stacked_jacobian(
+def _stacked_jacobian(
     R_WB: np.ndarray,
     p_WB: np.ndarray,
     st: State,
@@ -173,11 +173,11 @@ def feature_system(
     F, V = mask.shape
     right = calib_right
     # 3. Residuals at the current estimates; Jacobians where ``update_linearization`` says.
-    cur = stacked_jacobian(R_WB, p_WB, st, right, p_f)
+    cur = _stacked_jacobian(R_WB, p_WB, st, right, p_f)
     if p.use_fej and p.update_linearization == "first_estimates":
         R_fej = np.stack([c.R_WB_fej for c in clones])
         p_fej = np.stack([c.p_WB_fej for c in clones])
-        jac = stacked_jacobian(R_fej, p_fej, st, right, p_f)
+        jac = _stacked_jacobian(R_fej, p_fej, st, right, p_f)
     else:
         jac = cur
     w = mask[..., None].astype(float)
