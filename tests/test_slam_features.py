@@ -31,7 +31,10 @@ from viotb.vio.types import ImuNoise
 from viotb.vio.update_helpers import Chi2Table, clone_unobservable_basis
 
 SIM = MsckfParams(frontend="sim", pixel_sigma_px=0.5)
-CURRENT = replace(SIM, update_linearization="current")
+# The unit tests of the initialization take every well-posed track (the test points' sigma is ~5 % of
+# their distance, at the default gate).
+OPEN = replace(SIM, slam_max_init_sigma_ratio=np.inf)
+CURRENT = replace(OPEN, update_linearization="current")
 
 
 def _random_spd(rng: np.random.Generator, n: int, scale: float) -> np.ndarray:
@@ -166,7 +169,7 @@ def test_delayed_init_lands_on_the_independent_triangulation_and_its_covariance_
     f0 = world.camera.fx
     R_WC, p_WC = view_poses(st, world.calib1)
     assert np.allclose(_dlt(R_WC, p_WC, xy[0]), p_true, atol=1e-9)
-    initialize_landmarks(st, np.array([5]), xy, mask, SIM, Chi2Table(100), f0, world.calib1, f0)
+    initialize_landmarks(st, np.array([5]), xy, mask, OPEN, Chi2Table(100), f0, world.calib1, f0)
     assert np.allclose(st.landmarks[5].p_W_fej, p_true, atol=1e-9)
     assert np.allclose(st.landmarks[5].p_W, p_true, atol=1e-9)  # zero residual: no update either
     # Noisy views (0.5 px): the DLT and the init differ by far less than the landmark's sigma, and the
@@ -175,13 +178,24 @@ def test_delayed_init_lands_on_the_independent_triangulation_and_its_covariance_
         world, st, p_true, xy, mask, _ = _init_setup(seed)
         R_WC, p_WC = view_poses(st, world.calib1)
         p_dlt = _dlt(R_WC, p_WC, xy[0])
-        initialize_landmarks(st, np.array([5]), xy, mask, SIM, Chi2Table(100), f0, world.calib1, f0)
+        initialize_landmarks(st, np.array([5]), xy, mask, OPEN, Chi2Table(100), f0, world.calib1, f0)
         b = st.landmark_block(5).indices
         P_ff = st.cov[b, b]
         d = st.landmarks[5].p_W_fej - p_dlt  # both from the same clone estimates
         assert d @ np.linalg.solve(P_ff, d) < 0.5
         e = st.landmarks[5].p_W_fej - p_true
         assert e @ np.linalg.solve(P_ff, e) < scipy.stats.chi2.ppf(0.999, 3)
+
+
+def test_a_track_too_poorly_conditioned_for_a_point_is_not_initialized():
+    world, st, _, xy, mask, _ = _init_setup(4)
+    f0, dim = world.camera.fx, st.dim
+    tight = replace(SIM, slam_max_init_sigma_ratio=1e-3)  # far below this track's ~5 % sigma
+    assert initialize_landmarks(st, np.array([5]), xy, mask, tight, Chi2Table(100), f0, world.calib1, f0) == (
+        0,
+        1,
+    )
+    assert not st.landmarks and st.dim == dim
 
 
 def test_max_slam_features_must_not_be_negative():

@@ -266,11 +266,16 @@ def initialize_landmarks(
     n_cams = mask.shape[1] // K
     focal_v = np.repeat([focal_px, focal_right_px or focal_px][:n_cams], K)
     path_px = track_path_px(xy, mask, focal_v, K) if q_px > 0.0 else None
+    dist_m = np.linalg.norm(p_f - st.clones[next(reversed(st.clones))].p_WB, axis=1)
+    n_init = 0
     for f in np.flatnonzero(passed):
         R1_inv = np.linalg.inv(R1[f])
         A = R1_inv @ H1[f]
         cov_xf = -st.cov[:, cols] @ A.T
         cov_ff = A @ P_cc @ A.T + sigma2 * (R1_inv @ R1_inv.T)
+        if np.sqrt(np.linalg.eigvalsh(cov_ff)[-1]) > p.slam_max_init_sigma_ratio * dist_m[f]:
+            n_rej += 1  # 2e'. too poorly conditioned for a point in W (see MsckfParams)
+            continue
         last_xy = np.zeros((0, 2))
         if path_px is not None:
             # 2f'. Walk states (KLT): each camera's walk starts at its latest view with the variance it
@@ -288,13 +293,14 @@ def initialize_landmarks(
             cov_xf = np.concatenate([cov_xf, np.zeros((st.dim, len(var_b)))], axis=1)
             cov_ff = scipy.linalg.block_diag(cov_ff, np.diag(var_b))
         augment_landmark(st, int(ids[f]), p_f[f] + R1_inv @ r1[f], cov_xf, cov_ff, last_xy)
+        n_init += 1
     # 2g. The remaining rows update the state (and, through the cross-covariance, the new landmarks).
     H_c, r_c = measurement_compress(H2[passed].reshape(-1, n_c), r2[passed].reshape(-1))
     if len(H_c):
         H_full = np.zeros((len(H_c), st.dim))
         H_full[:, cols] = H_c
         ekf_update(st, H_full, r_c, sigma2)
-    return int(passed.sum()), n_rej
+    return n_init, n_rej
 
 
 def landmark_system(
