@@ -25,10 +25,16 @@ from viotb.vio.slam_features import (
     initialize_landmarks,
     landmark_system,
 )
-from viotb.vio.state import ImuValues, State, augment_clone, augment_landmark
+from viotb.vio.state import ImuValues, State, augment_clone, augment_landmark, ekf_update
 from viotb.vio.triangulation import triangulate
 from viotb.vio.types import ImuNoise
-from viotb.vio.update_helpers import Chi2Table, clone_unobservable_basis
+from viotb.vio.update_helpers import (
+    Chi2Table,
+    clone_unobservable_basis,
+    measurement_compress,
+    nullspace_project,
+    observability_projector,
+)
 
 SIM = MsckfParams(frontend="sim", pixel_sigma_px=0.5)
 # The unit tests of the initialization take every well-posed track (the test points' sigma is ~5 % of
@@ -196,6 +202,38 @@ def test_a_track_too_poorly_conditioned_for_a_point_is_not_initialized():
         1,
     )
     assert not st.landmarks and st.dim == dim
+
+
+@pytest.mark.parametrize("linearization", ["current", "current_oc"])
+def test_a_gated_track_updates_the_state_exactly_as_the_msckf_would(linearization):
+    """The bottom rows of the QR split are the MSCKF's null-space rows (Mourikis and Roumeliotis 2007)."""
+    world, st, _, xy, mask, sigma = _init_setup(3)
+    f0 = world.camera.fx
+    prm = replace(SIM, update_linearization=linearization, slam_max_init_sigma_ratio=0.0)
+    msckf = copy.deepcopy(st)
+    assert initialize_landmarks(st, np.array([5]), xy, mask, prm, Chi2Table(100), f0, world.calib1, f0) == (
+        0,
+        1,
+    )
+    # The MSCKF path on the copy: triangulate, project out the feature, constrain, compress, update.
+    R_WC, p_WC = view_poses(msckf, world.calib1)
+    p_f = triangulate(R_WC, p_WC, xy, mask, prm.triangulation, f0).p_W
+    r, H_x, H_f, cols, offsets = feature_system(msckf, xy, mask, p_f, prm, f0, world.calib1, f0)
+    H_o, r_o = nullspace_project(H_x, H_f, r)
+    Pi = None
+    if linearization == "current_oc":
+        clones = list(msckf.clones.values())
+        R_fej = np.stack([c.R_WB_fej for c in clones])
+        p_fej = np.stack([c.p_WB_fej for c in clones])
+        Pi = observability_projector(clone_unobservable_basis(R_fej, p_fej, offsets, msckf.dim)[cols])
+    H_c, r_c = measurement_compress(H_o.reshape(-1, len(cols)), r_o.reshape(-1), Pi)
+    H = np.zeros((len(H_c), msckf.dim))
+    H[:, cols] = H_c
+    ekf_update(msckf, H, r_c, sigma**2)
+    assert np.abs(st.cov - msckf.cov).max() < 1e-12 * np.abs(msckf.cov).max()
+    for t, c in st.clones.items():
+        assert np.allclose(c.p_WB, msckf.clones[t].p_WB, atol=1e-12)
+        assert np.allclose(c.R_WB, msckf.clones[t].R_WB, atol=1e-12)
 
 
 def test_max_slam_features_must_not_be_negative():
