@@ -3,8 +3,10 @@
 State: IMU ``[R_WB, p_WB, v_WB, b_g, b_a]``, optional camera-IMU extrinsic and time offset, and a sliding
 window of pose clones (:mod:`viotb.vio.state`). Each camera frame: propagate with the IMU to the frame time,
 try a zero-velocity update, clone the pose, and update with the features whose tracks ended (or that are
-about to lose their oldest clone). Landmarks never enter the state: they are triangulated, linearized and
-projected out with the left null space of their Jacobian.
+about to lose their oldest clone). These landmarks never enter the state: they are triangulated, linearized
+and projected out with the left null space of their Jacobian. With ``MsckfParams.max_slam_features > 0``
+tracks longer than the window become persistent SLAM landmarks in the state instead
+(:mod:`viotb.vio.slam_features`), updated at every clone until their track is lost.
 
 Bad inputs: non-finite IMU values and non-increasing IMU times raise ``ValueError`` naming the value and the
 times (they are rejected, not skipped). A frame without image or features is the documented degraded mode:
@@ -28,6 +30,14 @@ from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.msckf_update import UpdateStats, msckf_update
 from viotb.vio.propagator import Propagator
+from viotb.vio.slam_features import (
+    SlamStats,
+    initialize_landmarks,
+    landmark_observations,
+    marginalize_lost_landmarks,
+    take_new_landmarks,
+    update_landmarks,
+)
 from viotb.vio.state import (
     EXTRINSIC_BLOCK,
     IMU_BLOCK,
@@ -84,6 +94,8 @@ class MsckfEstimator:
         self.noise = noise
         self.params = params if params is not None else MsckfParams()
         p = self.params
+        if p.max_slam_features < 0:
+            raise ValueError(f"MsckfParams.max_slam_features must be >= 0, got {p.max_slam_features}")
         if not 2 <= p.max_clones <= 60:
             raise ValueError(f"MsckfParams.max_clones must be in 2..60, got {p.max_clones}")
         if p.update_linearization not in ("current_oc", "current", "first_estimates"):
@@ -114,6 +126,7 @@ class MsckfEstimator:
         self._version = 0
         self._pred_cache: tuple[int, float, ImuValues, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.last_stats = UpdateStats()
+        self.last_slam_stats = SlamStats()
         self.zupt_count = 0
         self.keyframe_rule = KeyframeSelector(p.keyframing)
         self.zero_velocity = ZeroVelocityDetector(
@@ -293,9 +306,22 @@ class MsckfEstimator:
         else:
             self.keyframe_rule.accept(tracks)
             self.propagator.propagate_and_clone(st, frame.t_s)
-            self.database.add(frame.t_s, tracks.ids, tracks.xy_norm)
-            if self.calib_right is not None and len(tracks.ids_right):
-                self.database.add(frame.t_s, tracks.ids_right, tracks.xy_norm_right, cam=1)
+            slam = p.max_slam_features > 0
+            if slam:
+                n_before = len(st.landmarks)
+                lm_obs = marginalize_lost_landmarks(
+                    st, landmark_observations(st, tracks, self.database.num_cameras)
+                )
+                n_lost = n_before - len(lm_obs.ids)
+            ids0, xy0, ids1, xy1 = tracks.ids, tracks.xy_norm, tracks.ids_right, tracks.xy_norm_right
+            if slam and st.landmarks:  # a landmark's observations go to its own update, not the database
+                keep0, keep1 = ~np.isin(ids0, lm_obs.ids), ~np.isin(ids1, lm_obs.ids)
+                ids0, xy0, ids1, xy1 = ids0[keep0], xy0[keep0], ids1[keep1], xy1[keep1]
+            self.database.add(frame.t_s, ids0, xy0)
+            if self.calib_right is not None and len(ids1):
+                self.database.add(frame.t_s, ids1, xy1, cam=1)
+            if slam:
+                new = take_new_landmarks(st, self.database, p, self.calib_right is not None)
             stats = msckf_update(
                 st,
                 self.database,
@@ -306,6 +332,8 @@ class MsckfEstimator:
                 self.calib_right,
                 self._focal_right_px,
             )
+            if slam:
+                self.last_slam_stats = self._slam_step(st, frame.t_s, lm_obs, new, n_lost)
             if len(st.clones) > p.max_clones:
                 t_old = marginalize_oldest_clone(st)
                 if t_old is not None:
@@ -315,6 +343,26 @@ class MsckfEstimator:
         self._check_divergence(stats)
         self.last_stats = stats
         self._health = self._make_health(frame.t_s, tracks, stats, tuple(conditions))
+
+    def _slam_step(self, st: State, t_s: float, lm_obs, new, n_lost: int) -> SlamStats:
+        """Update the SLAM landmarks at the newest clone, then initialize the new ones (open_vins order)."""
+        p = self.params
+        n_up, n_rej = update_landmarks(
+            st, lm_obs, p, self.chi2, t_s, self._focal_px, self.calib_right, self._focal_right_px
+        )
+        ids, xy, mask, stereo_views = new
+        n_init, n_init_rej = initialize_landmarks(
+            st,
+            ids,
+            xy,
+            mask,
+            p,
+            self.chi2,
+            self._focal_px,
+            self.calib_right if stereo_views else None,
+            self._focal_right_px,
+        )
+        return SlamStats(len(st.landmarks), n_up, n_rej, n_init, n_init_rej, n_lost)
 
     def _check_divergence(self, stats: UpdateStats) -> None:
         st = self.state

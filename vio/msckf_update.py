@@ -108,6 +108,112 @@ def _stacked_jacobian(
     )
 
 
+def window_observations(
+    db: FeatureDatabase, ids: np.ndarray, times: np.ndarray, stereo: bool
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Observations of ``ids`` at the clone ``times``: cam0's K views, then cam1's K on a stereo rig.
+
+    Returns:
+        ``(xy (F, C K, 2), mask (F, C K), stereo)``; ``stereo`` is False (C = 1) when no cam1 view exists.
+    """
+    xy, mask = db.observations(ids, times)
+    if stereo:
+        xy1, mask1 = db.observations(ids, times, cam=1)
+        stereo = bool(mask1.any())  # without cam1 views this is exactly the mono update
+        if stereo:
+            xy, mask = np.concatenate([xy, xy1], axis=1), np.concatenate([mask, mask1], axis=1)
+    return xy, mask, stereo
+
+
+def view_poses(st: State, calib_right: CameraCalibration | None) -> tuple[np.ndarray, np.ndarray]:
+    """Camera poses of every view at the current clone estimates: ``(R_WC (C K, 3, 3), p_WC (C K, 3))``."""
+    clones = list(st.clones.values())
+    R_WB = np.stack([c.R_WB for c in clones])
+    p_WB = np.stack([c.p_WB for c in clones])
+    R_WC = R_WB @ st.R_BC
+    p_WC = p_WB + R_WB @ st.p_BC
+    if calib_right is not None:
+        R_WC = np.concatenate([R_WC, R_WB @ calib_right.R_BC])
+        p_WC = np.concatenate([p_WC, p_WB + R_WB @ np.asarray(calib_right.p_BC, dtype=float)])
+    return R_WC, p_WC
+
+
+def feature_system(
+    st: State,
+    xy: np.ndarray,
+    mask: np.ndarray,
+    p_f: np.ndarray,
+    p: MsckfParams,
+    focal_px: float,
+    calib_right: CameraCalibration | None,
+    focal_right_px: float | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Whitened residuals and Jacobians of features seen in the clone window (before any projection).
+
+    Args:
+        st: The state (its clones are the K views of each camera).
+        xy: Observed normalized coordinates, shape (F, C K, 2) (:func:`window_observations`).
+        mask: Valid views, shape (F, C K).
+        p_f: Feature positions (m) in W, shape (F, 3), the linearization point.
+        p: Settings (``update_linearization``, ``pixel_sigma_px``, the front end's track noise).
+        focal_px: Cam0 focal length (px).
+        calib_right: Cam1 calibration when the views include cam1's (C = 2), else None.
+        focal_right_px: Cam1 focal length (px).
+
+    Returns:
+        ``(r (F, 2 C K), H_x (F, 2 C K, n_c), H_f (F, 2 C K, 3), cols (n_c,), clone_offsets (K,))``: rows
+        whitened to cam0's normalized white sigma ``p.pixel_sigma_px / focal_px``, masked views zero;
+        ``cols`` are the error-state columns of ``H_x`` (clone k at 6 k, then the extrinsic if estimated).
+    """
+    clones = list(st.clones.values())
+    R_WB = np.stack([c.R_WB for c in clones])
+    p_WB = np.stack([c.p_WB for c in clones])
+    K = len(clones)
+    stereo = calib_right is not None
+    F, V = mask.shape
+    right = calib_right
+    # 3. Residuals at the current estimates; Jacobians where ``update_linearization`` says.
+    cur = _stacked_jacobian(R_WB, p_WB, st, right, p_f)
+    if p.use_fej and p.update_linearization == "first_estimates":
+        R_fej = np.stack([c.R_WB_fej for c in clones])
+        p_fej = np.stack([c.p_WB_fej for c in clones])
+        jac = _stacked_jacobian(R_fej, p_fej, st, right, p_f)
+    else:
+        jac = cur
+    w = mask[..., None].astype(float)
+    if stereo and focal_right_px is not None and focal_right_px != focal_px:
+        w[:, K:] *= focal_right_px / focal_px  # whiten cam1 rows to cam0's normalized sigma
+    r = ((xy - cur.z_norm) * w).reshape(F, 2 * V)
+    H_f = (jac.H_feature * w[..., None]).reshape(F, 2 * V, 3)
+    # The rows touch only the clone blocks and the extrinsic: steps 3-6 work on those columns ``cols``
+    # of the error state (clone k at 6 k, then the extrinsic), the others are exactly zero.
+    clone_offsets = np.array([st.clone_block(float(t)).offset for t in st.clones])
+    cols = (clone_offsets[:, None] + np.arange(6)).ravel()
+    has_ext = st.has_block(EXTRINSIC_BLOCK)
+    if has_ext:
+        cols = np.concatenate([cols, st.block(EXTRINSIC_BLOCK).offset + np.arange(6)])
+    n_c = len(cols)
+    H_x = np.zeros((F, V, 2, n_c))
+    H_pose = jac.H_pose * w[..., None]
+    for k in range(K):
+        H_x[:, k::K, :, 6 * k : 6 * k + 6] = H_pose[:, k::K]  # this clone's view in every camera
+    if has_ext:
+        H_x[..., 6 * K :] = jac.H_extrinsic * w[..., None]
+    H_x = H_x.reshape(F, 2 * V, n_c)
+    q_px = track_random_walk_px2_per_px(p)
+    if q_px > 0.0:
+        # 3b. Correlated track noise (white + a random walk per pixel of image motion): whiten each
+        #     feature's views to the white sigma before the projection, the generalized-least-squares update.
+        focal_v = np.where(np.arange(V) < K, focal_px, focal_right_px or focal_px)
+        W = random_walk_whitener(
+            track_path_px(xy, mask, focal_v, K), mask, np.arange(V) // K, q_px / p.pixel_sigma_px**2
+        )
+        r = (W @ r.reshape(F, V, 2)).reshape(F, 2 * V)  # rows are (view, axis): W acts on the views
+        H_f = (W @ H_f.reshape(F, V, 6)).reshape(F, 2 * V, 3)
+        H_x = (W @ H_x.reshape(F, V, 2 * n_c)).reshape(F, 2 * V, n_c)
+    return r, H_x, H_f, cols, clone_offsets
+
+
 def msckf_update(
     st: State,
     db: FeatureDatabase,
@@ -152,24 +258,10 @@ def msckf_update(
         return UpdateStats()
     order = np.argsort(-lengths, kind="stable")[: p.max_features_per_update]
     cand = cand[order]
-    xy, mask = db.observations(cand, times)
-    clones = list(st.clones.values())
-    R_WB = np.stack([c.R_WB for c in clones])
-    p_WB = np.stack([c.p_WB for c in clones])
-    R_WC = R_WB @ st.R_BC
-    p_WC = p_WB + R_WB @ st.p_BC
-    K = len(times)
-    if stereo:
-        assert calib_right is not None
-        xy1, mask1 = db.observations(cand, times, cam=1)
-        stereo = bool(mask1.any())  # without cam1 views this is exactly the mono update
-    if stereo:
-        assert calib_right is not None
-        xy, mask = np.concatenate([xy, xy1], axis=1), np.concatenate([mask, mask1], axis=1)
-        R_WC = np.concatenate([R_WC, R_WB @ calib_right.R_BC])
-        p_WC = np.concatenate([p_WC, p_WB + R_WB @ np.asarray(calib_right.p_BC, dtype=float)])
+    xy, mask, stereo = window_observations(db, cand, times, stereo)
     db.remove_features(cand)
     # 2. Triangulate every feature from all its views in the current clone estimates.
+    R_WC, p_WC = view_poses(st, calib_right if stereo else None)
     tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, focal_px)
     ok = tri.valid
     n_cand = len(cand)
@@ -178,46 +270,12 @@ def msckf_update(
         return UpdateStats(candidates=n_cand, inconsistent=n_bad)
     xy, mask, p_f = xy[ok], mask[ok], tri.p_W[ok]
     F, V = mask.shape
-    right = calib_right if stereo else None
-    # 3. Residuals at the current estimates; Jacobians where ``update_linearization`` says.
-    cur = _stacked_jacobian(R_WB, p_WB, st, right, p_f)
-    if p.use_fej and p.update_linearization == "first_estimates":
-        R_fej = np.stack([c.R_WB_fej for c in clones])
-        p_fej = np.stack([c.p_WB_fej for c in clones])
-        jac = _stacked_jacobian(R_fej, p_fej, st, right, p_f)
-    else:
-        jac = cur
-    w = mask[..., None].astype(float)
-    if stereo and focal_right_px is not None and focal_right_px != focal_px:
-        w[:, K:] *= focal_right_px / focal_px  # whiten cam1 rows to cam0's normalized sigma
-    r = ((xy - cur.z_norm) * w).reshape(F, 2 * V)
-    H_f = (jac.H_feature * w[..., None]).reshape(F, 2 * V, 3)
-    # The rows touch only the clone blocks and the extrinsic: steps 3-6 work on those columns ``cols``
-    # of the error state (clone k at 6 k, then the extrinsic), the others are exactly zero.
-    clone_offsets = np.array([st.clone_block(float(t)).offset for t in times])
-    cols = (clone_offsets[:, None] + np.arange(6)).ravel()
-    has_ext = st.has_block(EXTRINSIC_BLOCK)
-    if has_ext:
-        cols = np.concatenate([cols, st.block(EXTRINSIC_BLOCK).offset + np.arange(6)])
+    # 3. Residuals and Jacobians of every view (whitened), on the columns ``cols`` they touch.
+    r, H_x, H_f, cols, clone_offsets = feature_system(
+        st, xy, mask, p_f, p, focal_px, calib_right if stereo else None, focal_right_px
+    )
     n_c = len(cols)
-    H_x = np.zeros((F, V, 2, n_c))
-    H_pose = jac.H_pose * w[..., None]
-    for k in range(K):
-        H_x[:, k::K, :, 6 * k : 6 * k + 6] = H_pose[:, k::K]  # this clone's view in every camera
-    if has_ext:
-        H_x[..., 6 * K :] = jac.H_extrinsic * w[..., None]
-    H_x = H_x.reshape(F, 2 * V, n_c)
-    q_px = track_random_walk_px2_per_px(p)
-    if q_px > 0.0:
-        # 3b. Correlated track noise (white + a random walk per pixel of image motion): whiten each
-        #     feature's views to the white sigma before the projection, the generalized-least-squares update.
-        focal_v = np.where(np.arange(V) < K, focal_px, focal_right_px or focal_px)
-        W = random_walk_whitener(
-            track_path_px(xy, mask, focal_v, K), mask, np.arange(V) // K, q_px / p.pixel_sigma_px**2
-        )
-        r = (W @ r.reshape(F, V, 2)).reshape(F, 2 * V)  # rows are (view, axis): W acts on the views
-        H_f = (W @ H_f.reshape(F, V, 6)).reshape(F, 2 * V, 3)
-        H_x = (W @ H_x.reshape(F, V, 2 * n_c)).reshape(F, 2 * V, n_c)
+    clones = list(st.clones.values())
     # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
     H_o, r_o = nullspace_project(H_x, H_f, r)
     P_cc = st.cov[np.ix_(cols, cols)]

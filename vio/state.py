@@ -2,9 +2,10 @@
 
 The error state is ordered by blocks: ``imu`` (15) first, then the optional calibration blocks
 ``extrinsic`` (6: ``[dphi_BC, dp_BC]``) and ``time_offset`` (1), then one 6-dof block per pose clone
-(``[dtheta, dp]``), oldest first. Rotations use the right (body-frame) perturbation ``R = R_hat Exp(dtheta)``;
-every other quantity is additive. The IMU block is ordered ``[dtheta, dp, dv, dbg, dba]`` as in
-:class:`viotb.vio.types.StateEstimate`.
+(``[dtheta, dp]``, oldest first) and one 3-dof block per SLAM landmark (``slam@<id>``: ``dp_f`` in W,
+:mod:`viotb.vio.slam_features`), in the order they were added. Rotations use the right (body-frame)
+perturbation ``R = R_hat Exp(dtheta)``; every other quantity is additive. The IMU block is ordered
+``[dtheta, dp, dv, dbg, dba]`` as in :class:`viotb.vio.types.StateEstimate`.
 
 The covariance is owned by :class:`State` and changes only through the module functions below
 (``ekf_propagate``, ``ekf_update``, ``augment_clone``, ``marginalize``), as open_vins' ``StateHelper`` is the
@@ -105,6 +106,27 @@ class ClonePose:
     p_WB_fej: np.ndarray
 
 
+@dataclass
+class SlamLandmark:
+    """A persistent landmark: block ``[dp_f (3), db (2 B)]`` (:mod:`viotb.vio.slam_features`).
+
+    Attributes:
+        feature_id: Track id of the front end (its key).
+        p_W: Current estimate (m) in W, shape (3,).
+        p_W_fej: First estimate (m), the value it was initialized with, shape (3,).
+        track_bias: Walk of the track error per camera (normalized coordinates; KLT), shape (B, 2).
+        last_xy: Each camera's latest observation (normalized; NaN: unseen), shape (B, 2).
+        gate_failures: Consecutive frames its observation failed the chi-square gate.
+    """
+
+    feature_id: int
+    p_W: np.ndarray
+    p_W_fej: np.ndarray
+    track_bias: np.ndarray
+    last_xy: np.ndarray
+    gate_failures: int = 0
+
+
 class State:
     """IMU state, optional calibration and a window of pose clones, with their joint covariance.
 
@@ -143,6 +165,7 @@ class State:
         self.p_BC = np.array(p_BC, dtype=float)
         self.time_offset_s = float(time_offset_s)
         self.clones: dict[float, ClonePose] = {}
+        self.landmarks: dict[int, SlamLandmark] = {}
         self._blocks: dict[str, Block] = {IMU_BLOCK: Block(IMU_BLOCK, 0, IMU_DIM)}
         diag = [imu_cov]
         if extrinsic_cov is not None:
@@ -194,6 +217,15 @@ class State:
         """Block of the clone at camera time ``t_s``."""
         return self.block(self.clone_name(t_s))
 
+    @staticmethod
+    def landmark_name(feature_id: int) -> str:
+        """Block name of the SLAM landmark of track ``feature_id``."""
+        return f"slam@{int(feature_id)}"
+
+    def landmark_block(self, feature_id: int) -> Block:
+        """Block of the SLAM landmark of track ``feature_id``."""
+        return self.block(self.landmark_name(feature_id))
+
     @property
     def clone_times(self) -> np.ndarray:
         """Clone camera times (s), oldest first, shape (K,)."""
@@ -230,6 +262,11 @@ class State:
             for k, (_, clone) in enumerate(clones):
                 clone.R_WB = clone.R_WB @ dR[k]
                 clone.p_WB = clone.p_WB + dx[o[k] + 3]
+        for fid, lm in self.landmarks.items():
+            o = self._blocks[self.landmark_name(fid)].offset
+            lm.p_W = lm.p_W + dx[o : o + 3]
+            if lm.track_bias.size:
+                lm.track_bias = lm.track_bias + dx[o + 3 : o + 3 + lm.track_bias.size].reshape(-1, 2)
 
 
 def marginal_covariance(state: State, blocks: list[Block] | tuple[Block, ...]) -> np.ndarray:
@@ -350,6 +387,47 @@ def marginalize(state: State, block: Block) -> None:
     if current.name.startswith("clone@"):
         t = next(t for t in state.clones if State.clone_name(t) == current.name)
         del state.clones[t]
+    elif current.name.startswith("slam@"):
+        del state.landmarks[int(current.name[5:])]
+
+
+def augment_landmark(
+    state: State,
+    feature_id: int,
+    p_W: np.ndarray,
+    cov_x_l: np.ndarray,
+    cov_l_l: np.ndarray,
+    last_xy: np.ndarray,
+) -> Block:
+    """Append a SLAM landmark block (open_vins ``StateHelper::initialize_invertible``).
+
+    Args:
+        state: The state (modified in place).
+        feature_id: Track id (must not be a landmark already).
+        p_W: Landmark position (m) in W, shape (3,); also its first estimate. Its walk states start at 0.
+        cov_x_l: Cross-covariance of the existing error state with the block, shape (dim, 3 + 2 B).
+        cov_l_l: Covariance of the block ``[dp_f, db]``, shape (3 + 2 B, 3 + 2 B).
+        last_xy: The observations the walk was last clocked at, shape (B, 2).
+    """
+    n, size = state.dim, cov_l_l.shape[0]
+    if feature_id in state.landmarks or cov_x_l.shape != (n, size) or size != 3 + np.size(last_xy):
+        raise ValueError(f"augment_landmark: feature {feature_id} exists or shapes {cov_x_l.shape}, {size}")
+    new = np.empty((n + size, n + size))
+    new[:n, :n] = state._cov
+    new[:n, n:] = cov_x_l
+    new[n:, :n] = cov_x_l.T
+    new[n:, n:] = cov_l_l
+    state._set_cov(new)
+    block = Block(State.landmark_name(feature_id), n, size)
+    state._blocks[block.name] = block
+    p, xy = np.array(p_W, dtype=float), np.array(last_xy, dtype=float).reshape(-1, 2)
+    state.landmarks[int(feature_id)] = SlamLandmark(int(feature_id), p, p.copy(), np.zeros_like(xy), xy)
+    return block
+
+
+def add_diagonal_noise(state: State, indices: np.ndarray, var: np.ndarray) -> None:
+    """Add process noise ``var`` (same shape as ``indices``) to the covariance diagonal at ``indices``."""
+    state._cov[indices, indices] += var
 
 
 def marginalize_oldest_clone(state: State) -> float | None:
@@ -391,31 +469,19 @@ def read_init_record(init: object) -> tuple[float, ImuValues, np.ndarray]:
     Raises:
         ValueError: A missing field, a wrong shape, a non-finite value or a non-positive variance.
     """
+    names = ("R_WB", "p_WB", "v_WB", "gyro_bias_rad_s", "accel_bias_m_s2", "cov_diag")
+    shapes = ((3, 3), (3,), (3,), (3,), (3,), (15,))
     try:
         t_s = float(init.t_s)  # type: ignore[attr-defined]
-        vals = ImuValues(
-            np.array(init.R_WB, dtype=float),  # type: ignore[attr-defined]
-            np.array(init.p_WB, dtype=float),  # type: ignore[attr-defined]
-            np.array(init.v_WB, dtype=float),  # type: ignore[attr-defined]
-            np.array(init.gyro_bias_rad_s, dtype=float),  # type: ignore[attr-defined]
-            np.array(init.accel_bias_m_s2, dtype=float),  # type: ignore[attr-defined]
-        )
-        cov_diag = np.asarray(init.cov_diag, dtype=float)  # type: ignore[attr-defined]
+        arrays = [np.array(getattr(init, name), dtype=float) for name in names]
     except AttributeError as exc:
         raise ValueError(f"initialize: the init record lacks a field ({exc})") from None
-    shapes = {
-        "R_WB": (vals.R_WB, (3, 3)),
-        "p_WB": (vals.p_WB, (3,)),
-        "v_WB": (vals.v_WB, (3,)),
-        "gyro_bias_rad_s": (vals.gyro_bias_rad_s, (3,)),
-        "accel_bias_m_s2": (vals.accel_bias_m_s2, (3,)),
-        "cov_diag": (cov_diag, (15,)),
-    }
-    for name, (arr, shape) in shapes.items():
+    for name, arr, shape in zip(names, arrays, shapes, strict=True):
         if arr.shape != shape:
             raise ValueError(f"initialize: {name} must have shape {shape}, got {arr.shape}")
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"initialize: {name} is not finite: {arr.tolist()}")
+    vals, cov_diag = ImuValues(*arrays[:5]), arrays[5]
     if np.any(cov_diag <= 0.0):
         raise ValueError(f"initialize: cov_diag must be positive, got {cov_diag.tolist()}")
     cov = np.diag(cov_diag)
