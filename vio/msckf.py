@@ -23,7 +23,7 @@ from viotb.vio.camera import CameraCalibration
 from viotb.vio.feature_database import FeatureDatabase
 from viotb.vio.frontend import FrontEnd, Tracks, make_frontend
 from viotb.vio.frontend_stereo import make_stereo_frontend
-from viotb.vio.initialization import InertialInitializer, InitParams
+from viotb.vio.initialization import InertialInitializer, init_params_for
 from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lie import log_so3
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
@@ -112,7 +112,7 @@ class MsckfEstimator:
         self.database = FeatureDatabase(p.max_clones + 3, num_cameras=n_cams)
         self.chi2 = Chi2Table(2 * n_cams * (p.max_clones + 2) + 20)
         self.state: State | None = None
-        self.initializer = InertialInitializer(calib, noise, InitParams())
+        self.initializer = InertialInitializer(calib, noise, init_params_for(p.frontend))
         self._focal_px = 0.5 * (calib.camera.fx + calib.camera.fy)
         self._focal_right_px = None
         if calib_right is not None:
