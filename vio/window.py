@@ -40,12 +40,13 @@ from viotb.vio.frontend_stereo import make_stereo_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
-from viotb.vio.marginalization import LinearPrior, schur_complement
+from viotb.vio.marginalization import LinearPrior
 from viotb.vio.propagator import ImuBuffer, select_imu_readings
-from viotb.vio.state import POS, ImuValues, read_init_record
+from viotb.vio.state import ImuValues, read_init_record
 from viotb.vio.triangulation import triangulate
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
 from viotb.vio.window_batch import integrate_gyro
+from viotb.vio.window_divergence import divergence_reason
 from viotb.vio.window_factors import (
     NX,
     boxminus,
@@ -62,21 +63,14 @@ from viotb.vio.window_map import (
     ImuLink,
     Keyframe,
     drop_landmark,
-    fix_first_estimates,
     landmark_candidates,
     observations,
     track_matrix,
 )
+from viotb.vio.window_marginalize import marginalize_oldest, window_factors
 from viotb.vio.window_nis import InnovationTest, WindowMarginals, innovation_test
 from viotb.vio.window_params import WindowParams
-from viotb.vio.window_solver import (
-    Factors,
-    FactorWeights,
-    levenberg_marquardt,
-    linearize,
-    schur_reduce,
-    stereo_weights,
-)
+from viotb.vio.window_solver import Factors, FactorWeights, LinearSystem, levenberg_marquardt, stereo_weights
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
 __all__ = [
@@ -153,6 +147,7 @@ class WindowEstimator:
         )
         self._last_cost_per_res = 0.0
         self._marginals: WindowMarginals | None = None
+        self._solved: tuple[LinearSystem, list[int]] | None = None
         self._innovation = InnovationTest()
         self._health = HealthStatus(t_s=0.0, initialized=False)
         self._diverged_reason = ""
@@ -401,6 +396,7 @@ class WindowEstimator:
         # 5. Covariances: the newest keyframe's (the inverse of its marginal information) and those the next
         #    keyframe's innovation test needs (:mod:`viotb.vio.window_nis`).
         self._marginals = WindowMarginals.from_system(sys, lm_ids)
+        self._solved = (sys, lm_ids)
         self._cov_newest = self._marginals.newest_covariance
         self._last_cost_per_res = sys.meas_cost / max(sys.n_res, 1)
         self._used = len(lm_ids)
@@ -421,68 +417,33 @@ class WindowEstimator:
         self, links: Iterable[int], still: list[int], no_motion: list[int], obs: tuple, obs1: tuple
     ) -> Factors:
         """The factors: IMU ``links``, prior, ``still``/``no_motion`` keyframes, ``obs`` (cam0), ``obs1``."""
-        key_to_k = {kf.key: k for k, kf in enumerate(self.keyframes)}
-        prior_k = [] if self.prior is None else [key_to_k[key] for key in self.prior.keys]
-        kfs = self.keyframes
-        return Factors(
-            imu=[(k, self.links[k].pre) for k in links],
-            prior=self.prior,
-            prior_k=prior_k,
-            still=still,
-            no_motion=[(k, kfs[k].t_s - kfs[k - 1].t_s) for k in no_motion],
-            obs=obs,
-            obs_right=obs1,
-        )
+        return window_factors(self.keyframes, self.links, self.prior, links, still, no_motion, obs, obs1)
 
     def _marginalize_oldest(self) -> None:
         """Fold the oldest keyframe and the landmarks it saw into a new linear prior (Schur complement)."""
-        old = self.keyframes[0]
-        lm_ids = sorted(f for f in old.obs.keys() | old.obs_right.keys() if f in self.landmarks)
-        pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
-        obs = observations(self.keyframes, lm_ids)
-        obs1 = observations(self.keyframes, lm_ids, cam=1)
-        xs = [kf.x for kf in self.keyframes]
-        # 1. Factors touching the marginalized variables: the prior, the oldest IMU link, its zero-velocity
-        #    and no-motion factors, and the observations of its landmarks.
-        nm = [1] if old.still and self.keyframes[1].still else []
-        f = self._factors([0], [0] if old.still else [], nm, obs, obs1)
-        xs_lin = fix_first_estimates(self.keyframes) if self.params.first_estimate_jacobians else None
-        sys = linearize(xs, pts, f, self._weights, xs_lin=xs_lin)
-        # 2. Eliminate those landmarks, then the oldest keyframe.
-        S, g_red, _ = schur_reduce(sys, 0.0)
-        H_p, g_p, _ = schur_complement(S, g_red, np.arange(NX))
-        rest = self.keyframes[1:]
-        self.prior = LinearPrior(H_p, g_p, [kf.key for kf in rest], [kf.x.copy() for kf in rest])
-        for fid in lm_ids:
-            drop_landmark(self.keyframes, self.landmarks, fid)
-        self.keyframes = rest
-        self.links = self.links[1:]
+        self.prior, self.keyframes, self.links = marginalize_oldest(
+            self.keyframes,
+            self.links,
+            self.landmarks,
+            self.prior,
+            self._weights,
+            self.params.first_estimate_jacobians,
+            self._solved,
+        )
+        self._solved = None
 
     def _check_divergence(self) -> None:
         if self._diverged_reason:
             return
-        p = self.params
-        kf = self.keyframes[-1]
-        vals = [kf.x.R_WB, kf.x.p_WB, kf.x.v_WB, kf.x.gyro_bias_rad_s, kf.x.accel_bias_m_s2, self._cov_newest]
-        if not all(np.all(np.isfinite(a)) for a in vals):
-            self._diverged_reason = "non-finite value in the newest keyframe state or covariance"
-            return
-        pos_sigma = float(np.sqrt(max(np.max(np.diag(self._cov_newest)[POS : POS + 3]), 0.0)))
-        if pos_sigma > p.max_position_sigma_m:
-            self._diverged_reason = (
-                f"position sigma {pos_sigma:.1f} m exceeds max_position_sigma_m={p.max_position_sigma_m}"
-            )
-            return
-        c = self._last_cost_per_res
-        gated = self._used + self._n_bad
-        runaway = gated >= p.runaway_min_features and self._n_bad > p.runaway_reject_ratio * gated
-        self._blowups = self._blowups + 1 if (c > p.max_cost_per_residual or runaway) else 0
-        if self._blowups >= p.blowup_keyframes:
-            self._diverged_reason = (
-                f"cost blow-up in {self._blowups} consecutive keyframes: cost per measurement residual "
-                f"{c:.1f} (limit {p.max_cost_per_residual}), {self._n_bad} of {gated} features rejected as "
-                f"outliers or inconsistent (limit {p.runaway_reject_ratio:.0%})"
-            )
+        self._diverged_reason, self._blowups = divergence_reason(
+            self.keyframes[-1].x,
+            self._cov_newest,
+            self.params,
+            self._last_cost_per_res,
+            self._used,
+            self._n_bad,
+            self._blowups,
+        )
 
     def _make_health(
         self, t_s: float, tracks: Tracks, innovation: InnovationTest | None = None

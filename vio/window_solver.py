@@ -10,7 +10,7 @@ marginal information of the newest keyframe.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import sparse
@@ -102,6 +102,9 @@ class LinearSystem:
         n_res: Measurement residuals (prior excluded).
         max_err: Largest whitened reprojection error per landmark (sigmas), shape (L,).
         meas_cost: Cost without the prior.
+        reprojection_blocks: Per camera, ``(kf index (M,), landmark index (M,), A (M, 10, 10))``: each
+            observation's Huber-weighted ``J^T J`` with ``J = [J_pose (6), J_point (3), r] / sigma``, so the
+            system of a subset of the landmarks needs no new linearization (:func:`landmark_subsystem`).
     """
 
     H: np.ndarray
@@ -113,6 +116,7 @@ class LinearSystem:
     n_res: int
     max_err: np.ndarray
     meas_cost: float
+    reprojection_blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
 
 
 def pose_index(n_kf: int) -> np.ndarray:
@@ -250,17 +254,19 @@ def linearize(
     g_l = np.zeros((L, 3))
     E = np.zeros((L, N, 6, 3))
     max_err = np.zeros(L)
+    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     cams = [(f.obs, w8.R_BC, w8.p_BC, w8.sigma_norm, prep.sums[0])]
     if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
         cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1, prep.sums[1]))
     for obs, R_BC, p_BC, sigma_norm, sums in cams:
         poses = (R, rest[:, :3], R_lin, rest_lin[:, :3])
         c, n = _add_reprojection(
-            H, g, H_ll, g_l, E, max_err, poses, pts, obs, R_BC, p_BC, sigma_norm, w8, sums
+            H, g, H_ll, g_l, E, max_err, poses, pts, obs, R_BC, p_BC, sigma_norm, w8, sums, blocks
         )
         cost += c
         n_res += n
-    return LinearSystem(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err, cost - prior_cost)
+    E_flat = E.reshape(L, N * 6, 3)
+    return LinearSystem(H, g, H_ll, g_l, E_flat, cost, n_res, max_err, cost - prior_cost, blocks)
 
 
 def _add_reprojection(
@@ -278,6 +284,7 @@ def _add_reprojection(
     sigma_norm: float,
     w8: FactorWeights,
     sums: tuple[sparse.csr_matrix, sparse.csr_matrix],
+    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 ) -> tuple[float, int]:
     """Add one camera's Huber-weighted reprojection factors to the system (in place).
 
@@ -297,6 +304,7 @@ def _add_reprojection(
         sigma_norm: Its measurement sigma in normalized coordinates.
         w8: The Huber threshold.
         sums: Sparse 0/1 matrices summing the observations per keyframe (N, M) and landmark (L, M).
+        blocks: ``(kf index, landmark index, A)`` of this camera is appended (``reprojection_blocks``).
 
     Returns:
         ``(robust cost, residual count)``.
@@ -333,6 +341,7 @@ def _add_reprojection(
     H_ll += per_lm[:, 6:9, 6:9]
     g_l += per_lm[:, 6:9, 9]
     E[lm_i, kf_i] += A[:, :6, 6:9]
+    blocks.append((kf_i, lm_i, A))
     return cost, 2 * len(kf_i)
 
 
