@@ -69,7 +69,7 @@ from viotb.vio.window_map import (
 )
 from viotb.vio.window_marginalize import marginalize_oldest, window_factors
 from viotb.vio.window_nis import InnovationTest, WindowMarginals, innovation_test
-from viotb.vio.window_params import WindowParams
+from viotb.vio.window_params import WindowParams, track_noise_q
 from viotb.vio.window_solver import Factors, FactorWeights, LinearSystem, levenberg_marquardt, stereo_weights
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
@@ -144,10 +144,15 @@ class WindowEstimator:
             p.huber_threshold,
             p.zero_velocity.velocity_sigma_m_s,
             *stereo_weights(calib_right, p.pixel_sigma_px),
+            track_q=track_noise_q(p),
+            focal_px=self._focal_px,
+            focal_px1=1.0 if calib_right is None else 0.5 * (calib_right.camera.fx + calib_right.camera.fy),
         )
         self._last_cost_per_res = 0.0
         self._marginals: WindowMarginals | None = None
         self._solved: tuple[LinearSystem, list[int]] | None = None
+        self._pending_steps = 0
+        self._pending_damping = self.params.initial_damping
         self._innovation = InnovationTest()
         self._health = HealthStatus(t_s=0.0, initialized=False)
         self._diverged_reason = ""
@@ -156,7 +161,8 @@ class WindowEstimator:
         self._n_bad = 0
         self._version = 0
         self._est_cache: tuple[int, float, StateEstimate] | None = None
-        self.solve_times_s: list[float] = []
+        self.solve_times_s: list[float] = []  # every solve: keyframes' and their continuations'
+        self.keyframes_added = 0
         self.solve_iterations: list[int] = []
 
     # ---------------------------------------------------------------------------------------- protocol
@@ -173,6 +179,7 @@ class WindowEstimator:
         self.prior = LinearPrior(np.linalg.inv(cov), np.zeros(NX), [kf.key], [vals.copy()])
         self._cov_newest = cov
         self._marginals = None
+        self._solved, self._pending_steps = None, 0
         self.keyframe_rule.forget_reference()
         self._version += 1
         self._health = HealthStatus(t_s=t_s, initialized=True)
@@ -199,9 +206,12 @@ class WindowEstimator:
         still = self._update_stillness(tracks)
         if self._diverged_reason or not self._is_keyframe(tracks):
             self.keyframe_rule.skip()
+            if self._pending_steps and not self._diverged_reason:
+                self._continue_solve()
             self._health = self._make_health(frame.t_s, tracks)
             return
         self.keyframe_rule.accept(tracks)
+        self._pending_steps, self.keyframes_added = 0, self.keyframes_added + 1
         try:
             self._add_keyframe(tracks, still)
         except (np.linalg.LinAlgError, FloatingPointError) as exc:
@@ -319,6 +329,7 @@ class WindowEstimator:
         last = self.keyframes[-1]
         t_s = tracks.t_imu_s
         self._n_bad = 0
+        self._marginalize_full()  # a solve cut short on the previous keyframe that the frames did not finish
         # 1. Preintegrate and predict the new keyframe (Forster eq. 33).
         readings = self._readings(last.t_s, t_s)
         pre = preintegrate(*readings, last.x, self.noise, self.params.midpoint_rotation)
@@ -336,11 +347,12 @@ class WindowEstimator:
         self.keyframes.append(Keyframe(self._next_key, t_s, x, obs, still, obs1))
         self._next_key += 1
         self.links.append(ImuLink(pre, readings))
-        # 2. New landmarks, 3. optimize, 4. marginalize.
+        # 2. New landmarks, 3. optimize (the rest of the step budget on the next frame), 4. marginalize.
         self._triangulate_new()
-        self._optimize()
-        if len(self.keyframes) > p.window_size:
-            self._marginalize_oldest()
+        steps = min(p.keyframe_frame_iterations, p.max_iterations)
+        self._optimize(steps, p.initial_damping, p.max_iterations - steps)
+        if not self._pending_steps:
+            self._marginalize_full()
         t_keep = self.keyframes[0].t_s - 1.0
         self.buffer.clean_older_than(t_keep)
 
@@ -367,8 +379,24 @@ class WindowEstimator:
                 self.landmarks[fid] = tri.p_W[f].copy()
         self._n_bad += int(np.sum(tri.rms_error_px >= p.triangulation.max_reprojection_error_px))
 
-    def _optimize(self) -> None:
-        """Levenberg-Marquardt over the window with landmarks eliminated by the Schur complement."""
+    def _continue_solve(self) -> None:
+        """Spend the rest of the last keyframe's step budget on this (non-keyframe) frame."""
+        steps, self._pending_steps = self._pending_steps, 0
+        try:
+            self._optimize(steps, self._pending_damping, 0)
+            self._marginalize_full()
+        except (np.linalg.LinAlgError, FloatingPointError) as exc:
+            self._diverged_reason = f"numerical failure in the optimization: {exc}"
+        self._version += 1
+
+    def _optimize(self, steps: int, damping: float, carry: int) -> None:
+        """Levenberg-Marquardt over the window with landmarks eliminated by the Schur complement.
+
+        Args:
+            steps: Most trial steps now.
+            damping: Initial damping.
+            carry: Steps the next frame may spend when this solve stops unconverged (``_continue_solve``).
+        """
         t0 = time.perf_counter()
         p = self.params
         # 0. Re-integrate preintegrations whose bias moved far from its linearization point (lesson ch. 5).
@@ -384,11 +412,13 @@ class WindowEstimator:
         still = [k for k, kf in enumerate(self.keyframes) if kf.still]
         no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
         factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
-        lm = (p.max_iterations, p.initial_damping, p.relative_tolerance, p.min_cost_decrease)
+        lm = (steps, damping, p.relative_tolerance, p.min_cost_decrease)
         fej = [kf.x_fej for kf in self.keyframes] if p.first_estimate_jacobians else None
         sol = levenberg_marquardt(xs, pts, factors, self._weights, *lm, fej)
         xs, pts, sys = sol.xs, sol.pts, sol.system
         self.solve_iterations.append(sol.iterations)
+        self._pending_steps = 0 if sol.converged else carry
+        self._pending_damping = sol.damping
         for kf, x in zip(self.keyframes, xs, strict=True):
             kf.x = x
         for j, fid in enumerate(lm_ids):
@@ -418,6 +448,11 @@ class WindowEstimator:
     ) -> Factors:
         """The factors: IMU ``links``, prior, ``still``/``no_motion`` keyframes, ``obs`` (cam0), ``obs1``."""
         return window_factors(self.keyframes, self.links, self.prior, links, still, no_motion, obs, obs1)
+
+    def _marginalize_full(self) -> None:
+        """Marginalize the oldest keyframe when the window holds more than ``window_size``."""
+        if len(self.keyframes) > self.params.window_size:
+            self._marginalize_oldest()
 
     def _marginalize_oldest(self) -> None:
         """Fold the oldest keyframe and the landmarks it saw into a new linear prior (Schur complement)."""

@@ -83,13 +83,14 @@ def landmark_subsystem(solved: LinearSystem, rows: np.ndarray, base: LinearSyste
     keep = np.zeros(len(solved.H_ll), dtype=bool)
     keep[rows] = True
     H, g = base.H.copy(), base.g.copy()
-    per_kf = np.zeros((n_kf, 10, 10))
-    for kf_i, lm_i, A in solved.reprojection_blocks:
-        sel = keep[lm_i]
-        np.add.at(per_kf, kf_i[sel], A[sel])
-    k_all = np.arange(n_kf)
-    H.reshape(n_kf, NX, n_kf, NX)[k_all, :6, k_all, :6] += per_kf[:, :6, :6]
-    g.reshape(n_kf, NX)[:, :6] += per_kf[:, :6, 9]
+    H_kk = np.zeros((n_kf, n_kf, 6, 6))
+    g_k = np.zeros((n_kf, 6))
+    for blocks in solved.reprojection_blocks:
+        H_b, g_b = blocks.pose_terms(keep, n_kf)
+        H_kk += H_b
+        g_k += g_b
+    H.reshape(n_kf, NX, n_kf, NX)[:, :6, :, :6] += np.swapaxes(H_kk, 1, 2)
+    g.reshape(n_kf, NX)[:, :6] += g_k
     return LinearSystem(
         H,
         g,

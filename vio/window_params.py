@@ -31,6 +31,10 @@ class WindowParams:
             so the same seed gives the same estimate: only keyframe frames solve, so it bounds the work of a
             frame; a solve cut short continues from its values at the next keyframe). 5 rather than 6; 4
             moved the head-walk recording's ATE from 3.3 to 3.8 cm and 3 aggressive's from 3.4 to 4.1 cm.
+        keyframe_frame_iterations: Of those steps, the most the keyframe's own frame takes; a solve that has
+            not converged by then takes the rest on the next frame when that is not a keyframe (from the
+            same values, the window already marginalized; a keyframe next instead continues the solve with
+            its own budget, as a solve cut short always did), so no frame carries a whole solve.
         initial_damping: Initial LM damping, relative to the diagonal.
         relative_tolerance: The iterations stop once a kept step lowers the cost by less than this fraction
             of it. 1e-4 rather than 1e-6: on the 12 s KLT recordings (figure-8, aggressive, fast rotation,
@@ -80,6 +84,10 @@ class WindowParams:
             3.23 / 3.64 -> 3.98, head-fast-turns 2.62 -> 2.74 / 2.68 -> 2.73. On simulated streams (4
             seeds, mean mm) aggressive 25.2 -> 21.5, figure8 18.1 -> 17.5, circle 26.4 -> 28.4, fast
             rotation 22.0 -> 24.6.
+        track_noise: Model each KLT track's error as white noise (``pixel_sigma_px``) plus a random walk
+            clocked by its image motion (``klt.track_random_walk_px2_per_px``, the MSCKF's model): the views
+            of a landmark are correlated and the reprojection factors are generalized least squares
+            (:mod:`viotb.vio.window_reprojection`). Only with the ``klt`` front end.
     """
 
     window_size: int = 10
@@ -93,7 +101,8 @@ class WindowParams:
     pixel_sigma_px: float = 1.0
     huber_threshold: float = 3.0
     outlier_threshold: float = 8.0
-    max_iterations: int = 5
+    max_iterations: int = 6
+    keyframe_frame_iterations: int = 4
     initial_damping: float = 1e-4
     relative_tolerance: float = 1e-4
     min_cost_decrease: float = 0.01
@@ -117,3 +126,15 @@ class WindowParams:
     blowup_keyframes: int = 5
     max_position_sigma_m: float = 100.0
     midpoint_rotation: bool = True
+    track_noise: bool = False
+
+
+def track_noise_q(p: WindowParams) -> float:
+    """``FactorWeights.track_q``: the KLT track random walk per px over the white variance (0 when off).
+
+    ``p.klt.track_random_walk_px2_per_px / p.pixel_sigma_px^2`` with ``p.track_noise`` and the ``klt`` front
+    end (the MSCKF's rule, :func:`viotb.vio.msckf_update.track_random_walk_px2_per_px`), else 0.
+    """
+    if not p.track_noise or p.frontend != "klt":
+        return 0.0
+    return p.klt.track_random_walk_px2_per_px / p.pixel_sigma_px**2
