@@ -15,11 +15,12 @@ State: a window of keyframes ``x_k = [R_WB, p_WB, v_WB, b_g, b_a]`` and landmark
 3. Minimize by Levenberg-Marquardt the IMU factors, the robust reprojection factors (cam1's with cam1's
    extrinsics on a stereo rig), the zero-velocity factors of still keyframes (:mod:`viotb.vio.zero_velocity`)
    and the linear prior left by marginalization (OKVIS eq. 9), landmarks eliminated by the Schur complement
-   (:mod:`viotb.vio.window_solver`, factors batched in :mod:`viotb.vio.window_batch`). Before that, the
+   (:mod:`viotb.vio.window_solver`, factors batched in :mod:`viotb.vio.window_batch`; a solve unconverged
+   after ``keyframe_frame_iterations`` steps takes the rest of its budget on the next frame). Before that, the
    IMU-predicted keyframe's observations of existing landmarks give the NIS per dof of its health record
    (:mod:`viotb.vio.window_nis`; the monitor's time-sync test reads it).
 4. When the window is full, marginalize the oldest keyframe together with every landmark it observed
-   (with all their observations) into a new linear prior (:mod:`viotb.vio.marginalization`). Those
+   (with all their observations) into a new linear prior (:mod:`viotb.vio.window_marginalize`). Those
    landmarks' later observations start fresh tracks, so no measurement is used twice; the observations in
    the old keyframe of features that are not landmarks yet are dropped.
 
