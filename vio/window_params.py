@@ -93,13 +93,14 @@ class WindowParams:
             clocked by its image motion (``klt.track_random_walk_px2_per_px``, the MSCKF's model): the views
             of a landmark are correlated and the reprojection factors are generalized least squares
             (:mod:`viotb.vio.window_reprojection`). Only with the ``klt`` front end. Off: on 12 s KLT
-            renders (seed 0; position NEES / ATE cm, off -> on with 1 px white) aggressive 8.8 / 2.19 ->
-            3.1 / 2.19, head-look-around 4.0 / 1.25 -> 2.1 / 1.52, circle 2.5 / 2.55 -> 1.6 / 2.57, figure8
-            1.9 / 2.35 -> 1.2 / 2.33, head-fast-turns 1.8 / 1.51 -> 1.0 / 2.02, hover 0.27 / 0.41 -> 0.22 /
-            0.44; with 0.5 px white (thresholds kept in px) aggressive 3.6 / 2.07, head-look-around 2.9 /
-            1.13, circle 2.2 / 2.61, figure8 1.8 / 2.45, head-fast-turns 1.5 / 2.05, hover 0.28 / 0.36. It
-            fixes aggressive's overconfidence, but the ATE of the fast turns grows by 0.5 cm and each
-            linearization costs about 1.5-2x (the pose blocks of every pair of views).
+            renders (seed 0, ``keyframe_frame_iterations`` 4; position NEES / ATE cm, off -> on, 1 px
+            white) aggressive 8.8 / 2.19 -> 3.1 / 2.19, head-look-around 4.0 / 1.25 -> 2.1 / 1.52, circle
+            2.5 / 2.55 -> 1.6 / 2.57, figure8 1.9 / 2.35 -> 1.2 / 2.33, head-fast-turns 1.8 / 1.51 -> 1.0 /
+            2.02, hover 0.27 / 0.41 -> 0.22 / 0.44; with 0.5 px white (thresholds kept in px) aggressive
+            3.6 / 2.07, head-look-around 2.9 / 1.13, circle 2.2 / 2.61, figure8 1.8 / 2.45, head-fast-turns
+            1.5 / 2.05, hover 0.28 / 0.36. It fixes aggressive's overconfidence, but the ATE of the fast
+            turns grows by 0.5 cm and each linearization costs about 1.5-2x (the pose blocks of every pair
+            of views).
     """
 
     window_size: int = 10
