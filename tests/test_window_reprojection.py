@@ -9,6 +9,8 @@ subset's factors.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from viotb.vio.lie import exp_so3
@@ -172,3 +174,15 @@ def test_observations_feed_the_track_noise_in_time_order():
     order = np.lexsort((obs[1], obs[0]))
     np.testing.assert_array_equal(np.lexsort((lm_i, kf_i)), np.arange(len(kf_i)))
     np.testing.assert_allclose(xy[np.lexsort((lm_i, kf_i))], obs[2][order])
+
+
+def test_second_camera_gets_its_own_track_noise():
+    """Cam1 with cam0's geometry and observations doubles the system: its tracks are whitened on their own."""
+    xs, pts, obs, R_BC, p_BC = _problem(seed=4)
+    w8 = _weights(R_BC, p_BC, 0.05)
+    stereo = dataclasses.replace(w8, R_BC1=R_BC, p_BC1=p_BC, sigma_norm1=w8.sigma_norm, focal_px1=FOCAL_PX)
+    mono = linearize(xs, pts, _factors(obs), w8)
+    both = linearize(xs, pts, dataclasses.replace(_factors(obs), obs_right=obs), stereo)
+    for name in ("H", "g", "H_ll", "g_l", "E"):
+        np.testing.assert_allclose(getattr(both, name), 2.0 * getattr(mono, name), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(both.cost, 2.0 * mono.cost, rtol=1e-12)
