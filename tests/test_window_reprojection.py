@@ -186,3 +186,34 @@ def test_second_camera_gets_its_own_track_noise():
     for name in ("H", "g", "H_ll", "g_l", "E"):
         np.testing.assert_allclose(getattr(both, name), 2.0 * getattr(mono, name), rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(both.cost, 2.0 * mono.cost, rtol=1e-12)
+
+
+@pytest.mark.parametrize("track_noise", [False, True])
+def test_marginalization_from_the_solve_equals_a_new_linearization(track_noise):
+    """The prior built from the solve's stored blocks equals the one from linearizing the factors again.
+
+    On a 3 s simulated circle (the sim front end; the track noise forced through the factor weights): the
+    estimator's window after a solve, marginalized both ways from copies.
+    """
+    import copy
+
+    from viotb.envs.run.replay import monitor_run
+    from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
+    from viotb.vio.window import WindowEstimator, WindowParams
+    from viotb.vio.window_marginalize import marginalize_oldest
+
+    stream = synthesize_stream(StreamConfig(motion="circle", seconds=3.0, landmark_count=400), 2)
+    est = WindowEstimator(stream.calib_given, stream.noise, WindowParams(frontend="sim"))
+    if track_noise:
+        est._weights = dataclasses.replace(est._weights, track_q=0.05, focal_px=est._focal_px)
+    monitor_run(est, stream.imu, stream.frames, stream.time_offset_s)
+    est._optimize(2, 1e-4, 0)  # a solve at the window's values, as before a marginalization
+    assert len(est.prior.keys) > 5 and est._solved is not None
+    a, b = copy.deepcopy(est), copy.deepcopy(est)
+    args = lambda e: (e.keyframes, e.links, e.landmarks, e.prior, e._weights, False)  # noqa: E731
+    prior_new, _, _ = marginalize_oldest(*args(a), None)
+    prior_reuse, _, _ = marginalize_oldest(*args(b), b._solved)
+    assert prior_new.keys == prior_reuse.keys
+    scale = np.abs(prior_new.H).max()
+    np.testing.assert_allclose(prior_reuse.H, prior_new.H, rtol=1e-9, atol=1e-10 * scale)
+    np.testing.assert_allclose(prior_reuse.g, prior_new.g, rtol=1e-9, atol=1e-10 * np.abs(prior_new.g).max())

@@ -20,6 +20,7 @@ from collections.abc import Iterable
 
 import numpy as np
 from viotb.vio.marginalization import LinearPrior, schur_complement
+from viotb.vio.state import ImuValues
 from viotb.vio.window_factors import NX
 from viotb.vio.window_map import (
     ImuLink,
@@ -104,6 +105,41 @@ def landmark_subsystem(solved: LinearSystem, rows: np.ndarray, base: LinearSyste
     )
 
 
+def _solved_base(
+    solved: LinearSystem,
+    xs: list[ImuValues],
+    w8: FactorWeights,
+    still: list[int],
+    no_motion: list[int],
+    keyframes: list[Keyframe],
+) -> LinearSystem:
+    """The oldest keyframe's prior, IMU link and zero-velocity factors, from a solve's stored terms.
+
+    The prior's and the first IMU link's blocks are the solve's own (``solved.prior_terms``,
+    ``solved.imu_blocks``); the zero-velocity and no-motion factors are linearized (a few 3x3 blocks).
+    """
+    n_kf = len(xs)
+    H, g = np.zeros((n_kf * NX, n_kf * NX)), np.zeros(n_kf * NX)
+    if still or no_motion:
+        empty = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
+        f = window_factors(keyframes, [], None, [], still, no_motion, empty, None)
+        base = linearize(xs, np.zeros((0, 3)), f, w8)
+        H, g = base.H, base.g
+    if solved.prior_terms is not None:
+        idx, H_pr, g_pr = solved.prior_terms
+        H[np.ix_(idx, idx)] += H_pr
+        g[idx] += g_pr
+    if solved.imu_blocks is not None:
+        k_imu, JtJ, Jtr = solved.imu_blocks
+        first = np.nonzero(k_imu == 0)[0]
+        if len(first):
+            H[: 2 * NX, : 2 * NX] += JtJ[first[0]]
+            g[: 2 * NX] += Jtr[first[0]]
+    return LinearSystem(
+        H, g, np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 6 * n_kf, 3)), 0.0, 0, np.zeros(0), 0.0
+    )
+
+
 def marginalize_oldest(
     keyframes: list[Keyframe],
     links: list[ImuLink],
@@ -139,9 +175,7 @@ def marginalize_oldest(
     if solved is not None:
         sys_all, solved_ids = solved
         row_of = {f: j for j, f in enumerate(solved_ids)}
-        empty = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
-        f = window_factors(keyframes, links, prior, [0], still, no_motion, empty, None)
-        base = linearize(xs, np.zeros((0, 3)), f, w8, xs_lin=xs_lin)
+        base = _solved_base(sys_all, xs, w8, still, no_motion, keyframes)
         sys = landmark_subsystem(sys_all, np.array([row_of[f] for f in lm_ids], dtype=np.int64), base)
     else:
         pts = np.array([landmarks[f] for f in lm_ids]).reshape(-1, 3)

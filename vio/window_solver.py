@@ -120,6 +120,9 @@ class LinearSystem:
         reprojection_blocks: Per camera, the reprojection factors' blocks
             (:mod:`viotb.vio.window_reprojection`), so the system of a subset of the landmarks needs no new
             linearization (:func:`viotb.vio.window_marginalize.landmark_subsystem`).
+        imu_blocks: ``(k (K,), J^T J (K, 2 NX, 2 NX), J^T r (K, 2 NX))`` of the whitened IMU factors between
+            keyframes ``k`` and ``k + 1``, or None.
+        prior_terms: ``(indices (P NX,), H (P NX, P NX), gradient (P NX,))`` of the prior here, or None.
     """
 
     H: np.ndarray
@@ -134,6 +137,8 @@ class LinearSystem:
     reprojection_blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=list
     )
+    imu_blocks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    prior_terms: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 def pose_index(n_kf: int) -> np.ndarray:
@@ -208,6 +213,7 @@ def linearize(
     n_res = 0
     R, rest = stack_values(xs)
     R_lin, rest_lin = (R, rest) if xs_lin is None else stack_values(xs_lin)
+    imu_blocks = prior_terms = None
     # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
     if len(prep.imu.k):
         r, J_i, J_j = imu_factors(prep.imu, R, rest, jacobians=xs_lin is None)
@@ -227,6 +233,7 @@ def linearize(
                 H4[k_i + a, :, k_i + b, :] += JtJ[:, a * NX : (a + 1) * NX, b * NX : (b + 1) * NX]
         cost += 0.5 * float(np.sum(r_w * r_w))
         n_res += NX * len(prep.imu.k)
+        imu_blocks = (k_i, JtJ, Jtr)
     # b. Linear prior (OKVIS eq. 9): 0.5 dx^T H dx + g^T dx at dx = x [-] x0.
     pr = f.prior
     if pr is not None:
@@ -234,7 +241,9 @@ def linearize(
         idx = (k_pr[:, None] * NX + np.arange(NX)[None, :]).ravel()
         dx = boxminus_batch(R[k_pr], rest[k_pr], prep.prior_R0, prep.prior_rest0).ravel()
         H[np.ix_(idx, idx)] += pr.H
-        g[idx] += pr.H @ dx + pr.g
+        g_pr = pr.H @ dx + pr.g
+        g[idx] += g_pr
+        prior_terms = (idx, pr.H, g_pr)
         prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
         cost += prior_cost
     # b2. Zero-velocity factors ``v / sigma`` on still keyframes.
@@ -274,7 +283,8 @@ def linearize(
         cost += c
         n_res += n
     E_flat = E.reshape(L, N * 6, 3)
-    return LinearSystem(H, g, H_ll, g_l, E_flat, cost, n_res, max_err, cost - prior_cost, blocks)
+    meas, terms = cost - prior_cost, (blocks, imu_blocks, prior_terms)
+    return LinearSystem(H, g, H_ll, g_l, E_flat, cost, n_res, max_err, meas, *terms)
 
 
 def schur_reduce(sys: LinearSystem, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
