@@ -44,7 +44,6 @@ from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame
 from viotb.vio.marginalization import LinearPrior
 from viotb.vio.propagator import ImuBuffer, select_imu_readings
 from viotb.vio.state import ImuValues, read_init_record
-from viotb.vio.triangulation import triangulate
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
 from viotb.vio.window_batch import integrate_gyro
 from viotb.vio.window_divergence import divergence_reason
@@ -64,9 +63,8 @@ from viotb.vio.window_map import (
     ImuLink,
     Keyframe,
     drop_landmark,
-    landmark_candidates,
     observations,
-    track_matrix,
+    triangulate_new,
 )
 from viotb.vio.window_marginalize import marginalize_oldest, window_factors
 from viotb.vio.window_nis import InnovationTest, WindowMarginals, innovation_test
@@ -359,26 +357,13 @@ class WindowEstimator:
 
     def _triangulate_new(self) -> None:
         p = self.params
+        cams = [(self._R_BC, self._p_BC)]
+        if self.calib_right is not None:
+            cams.append((np.asarray(self.calib_right.R_BC), np.asarray(self.calib_right.p_BC, dtype=float)))
         stereo = self.calib_right is not None and p.stereo_landmarks
-        cand = landmark_candidates(
-            self.keyframes, self.landmarks, p.min_track_length, p.max_landmarks, stereo
-        )
-        if not cand:
-            return
-        xy, mask = track_matrix(self.keyframes, cand)
-        R_WB = np.stack([kf.x.R_WB for kf in self.keyframes])
-        p_WB = np.stack([kf.x.p_WB for kf in self.keyframes])
-        R_WC, p_WC = R_WB @ self._R_BC, p_WB + R_WB @ self._p_BC
-        if self.calib_right is not None:  # cam1 views after cam0's
-            xy1, mask1 = track_matrix(self.keyframes, cand, cam=1)
-            xy, mask = np.concatenate([xy, xy1], axis=1), np.concatenate([mask, mask1], axis=1)
-            R_WC = np.concatenate([R_WC, R_WB @ self.calib_right.R_BC])
-            p_WC = np.concatenate([p_WC, p_WB + R_WB @ np.asarray(self.calib_right.p_BC, dtype=float)])
-        tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, self._focal_px)
-        for f, fid in enumerate(cand):
-            if tri.valid[f]:
-                self.landmarks[fid] = tri.p_W[f].copy()
-        self._n_bad += int(np.sum(tri.rms_error_px >= p.triangulation.max_reprojection_error_px))
+        limits = (p.min_track_length, p.max_landmarks, stereo)
+        tri = (p.triangulation, self._focal_px)
+        self._n_bad += triangulate_new(self.keyframes, self.landmarks, limits, cams, *tri)
 
     def _continue_solve(self) -> None:
         """Spend the rest of the last keyframe's step budget on this (non-keyframe) frame."""
