@@ -186,3 +186,43 @@ def test_default_budget_keeps_the_solve_bounded_on_a_run():
     monitor_run(est, stream.imu, stream.frames, stream.time_offset_s)
     assert len(est.solve_iterations) > 10
     assert max(est.solve_iterations) <= 2
+
+
+def test_split_budget_bounds_every_frame_and_continues_on_the_next():
+    """A keyframe's frame takes at most ``keyframe_frame_iterations`` steps; the next frame the rest.
+
+    With 1 step on the keyframe's frame and 3 in all, some solves continue on the following frame (with at
+    most 2 steps), no frame takes more, and the accuracy stays that of the unsplit 3-step budget.
+    """
+    from viotb.envs.run.replay import monitor_run
+    from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
+    from viotb.vio.metrics import align_umeyama
+
+    stream = synthesize_stream(StreamConfig(motion="circle", seconds=3.0, landmark_count=400), 1)
+    runs = {}
+    for k in (1, 3):
+        budget = {"max_iterations": 3, "keyframe_frame_iterations": k}
+        prm = WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px, **budget)
+        est = WindowEstimator(stream.calib_given, stream.noise, prm)
+        per_frame = []
+        real = est.feed_camera
+
+        def feed(frame, est=est, real=real, per_frame=per_frame):
+            n0, kf0 = len(est.solve_iterations), est.keyframes_added
+            real(frame)
+            per_frame.append((sum(est.solve_iterations[n0:]), est.keyframes_added > kf0))
+
+        est.feed_camera = feed
+        run = monitor_run(est, stream.imu, stream.frames, stream.time_offset_s)
+        ok = [e for e in run.estimates if e is not None]
+        t = np.array([e.t_s for e in ok])
+        p = np.array([e.p_WB for e in ok])
+        p_gt = np.stack([np.interp(t, stream.truth.t_s, stream.truth.p_WB[:, j]) for j in range(3)], axis=1)
+        al = align_umeyama(p, p_gt, "posyaw")
+        ate = float(np.sqrt(np.mean(np.linalg.norm(al.apply(p) - p_gt, axis=1) ** 2)))
+        runs[k] = (per_frame, ate)
+    per_frame, ate_split = runs[1]
+    assert all(steps <= 1 for steps, is_kf in per_frame if is_kf)
+    continued = [steps for steps, is_kf in per_frame if not is_kf and steps]
+    assert continued and max(continued) <= 2
+    assert ate_split < 0.05 and ate_split < 1.3 * runs[3][1]

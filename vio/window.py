@@ -15,11 +15,12 @@ State: a window of keyframes ``x_k = [R_WB, p_WB, v_WB, b_g, b_a]`` and landmark
 3. Minimize by Levenberg-Marquardt the IMU factors, the robust reprojection factors (cam1's with cam1's
    extrinsics on a stereo rig), the zero-velocity factors of still keyframes (:mod:`viotb.vio.zero_velocity`)
    and the linear prior left by marginalization (OKVIS eq. 9), landmarks eliminated by the Schur complement
-   (:mod:`viotb.vio.window_solver`, factors batched in :mod:`viotb.vio.window_batch`). Before that, the
+   (:mod:`viotb.vio.window_solver`, factors batched in :mod:`viotb.vio.window_batch`; a solve unconverged
+   after ``keyframe_frame_iterations`` steps takes the rest of its budget on the next frame). Before that, the
    IMU-predicted keyframe's observations of existing landmarks give the NIS per dof of its health record
    (:mod:`viotb.vio.window_nis`; the monitor's time-sync test reads it).
 4. When the window is full, marginalize the oldest keyframe together with every landmark it observed
-   (with all their observations) into a new linear prior (:mod:`viotb.vio.marginalization`). Those
+   (with all their observations) into a new linear prior (:mod:`viotb.vio.window_marginalize`). Those
    landmarks' later observations start fresh tracks, so no measurement is used twice; the observations in
    the old keyframe of features that are not landmarks yet are dropped.
 
@@ -40,12 +41,12 @@ from viotb.vio.frontend_stereo import make_stereo_frontend
 from viotb.vio.initialization import InertialInitializer, InitParams
 from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
-from viotb.vio.marginalization import LinearPrior, schur_complement
+from viotb.vio.marginalization import LinearPrior
 from viotb.vio.propagator import ImuBuffer, select_imu_readings
-from viotb.vio.state import POS, ImuValues, read_init_record
-from viotb.vio.triangulation import triangulate
+from viotb.vio.state import ImuValues, read_init_record
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
 from viotb.vio.window_batch import integrate_gyro
+from viotb.vio.window_divergence import divergence_reason
 from viotb.vio.window_factors import (
     NX,
     boxminus,
@@ -62,21 +63,13 @@ from viotb.vio.window_map import (
     ImuLink,
     Keyframe,
     drop_landmark,
-    fix_first_estimates,
-    landmark_candidates,
     observations,
-    track_matrix,
+    triangulate_new,
 )
+from viotb.vio.window_marginalize import marginalize_oldest, window_factors
 from viotb.vio.window_nis import InnovationTest, WindowMarginals, innovation_test
-from viotb.vio.window_params import WindowParams
-from viotb.vio.window_solver import (
-    Factors,
-    FactorWeights,
-    levenberg_marquardt,
-    linearize,
-    schur_reduce,
-    stereo_weights,
-)
+from viotb.vio.window_params import WindowParams, track_noise_q
+from viotb.vio.window_solver import Factors, FactorWeights, LinearSystem, levenberg_marquardt, stereo_weights
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
 __all__ = [
@@ -150,9 +143,15 @@ class WindowEstimator:
             p.huber_threshold,
             p.zero_velocity.velocity_sigma_m_s,
             *stereo_weights(calib_right, p.pixel_sigma_px),
+            track_q=track_noise_q(p),
+            focal_px=self._focal_px,
+            focal_px1=1.0 if calib_right is None else 0.5 * (calib_right.camera.fx + calib_right.camera.fy),
         )
         self._last_cost_per_res = 0.0
         self._marginals: WindowMarginals | None = None
+        self._solved: tuple[LinearSystem, list[int]] | None = None
+        self._pending_steps = 0
+        self._pending_damping = self.params.initial_damping
         self._innovation = InnovationTest()
         self._health = HealthStatus(t_s=0.0, initialized=False)
         self._diverged_reason = ""
@@ -161,7 +160,8 @@ class WindowEstimator:
         self._n_bad = 0
         self._version = 0
         self._est_cache: tuple[int, float, StateEstimate] | None = None
-        self.solve_times_s: list[float] = []
+        self.solve_times_s: list[float] = []  # every solve: keyframes' and their continuations'
+        self.keyframes_added = 0
         self.solve_iterations: list[int] = []
 
     # ---------------------------------------------------------------------------------------- protocol
@@ -178,6 +178,7 @@ class WindowEstimator:
         self.prior = LinearPrior(np.linalg.inv(cov), np.zeros(NX), [kf.key], [vals.copy()])
         self._cov_newest = cov
         self._marginals = None
+        self._solved, self._pending_steps = None, 0
         self.keyframe_rule.forget_reference()
         self._version += 1
         self._health = HealthStatus(t_s=t_s, initialized=True)
@@ -204,9 +205,12 @@ class WindowEstimator:
         still = self._update_stillness(tracks)
         if self._diverged_reason or not self._is_keyframe(tracks):
             self.keyframe_rule.skip()
+            if self._pending_steps and not self._diverged_reason:
+                self._continue_solve()
             self._health = self._make_health(frame.t_s, tracks)
             return
         self.keyframe_rule.accept(tracks)
+        self._pending_steps, self.keyframes_added = 0, self.keyframes_added + 1
         try:
             self._add_keyframe(tracks, still)
         except (np.linalg.LinAlgError, FloatingPointError) as exc:
@@ -324,6 +328,7 @@ class WindowEstimator:
         last = self.keyframes[-1]
         t_s = tracks.t_imu_s
         self._n_bad = 0
+        self._marginalize_full()  # a solve cut short on the previous keyframe that the frames did not finish
         # 1. Preintegrate and predict the new keyframe (Forster eq. 33).
         readings = self._readings(last.t_s, t_s)
         pre = preintegrate(*readings, last.x, self.noise, self.params.midpoint_rotation)
@@ -341,39 +346,43 @@ class WindowEstimator:
         self.keyframes.append(Keyframe(self._next_key, t_s, x, obs, still, obs1))
         self._next_key += 1
         self.links.append(ImuLink(pre, readings))
-        # 2. New landmarks, 3. optimize, 4. marginalize.
+        # 2. New landmarks, 3. optimize (the rest of the step budget on the next frame), 4. marginalize.
         self._triangulate_new()
-        self._optimize()
-        if len(self.keyframes) > p.window_size:
-            self._marginalize_oldest()
+        steps = min(p.keyframe_frame_iterations, p.max_iterations)
+        self._optimize(steps, p.initial_damping, p.max_iterations - steps)
+        if not self._pending_steps:
+            self._marginalize_full()
         t_keep = self.keyframes[0].t_s - 1.0
         self.buffer.clean_older_than(t_keep)
 
     def _triangulate_new(self) -> None:
         p = self.params
+        cams = [(self._R_BC, self._p_BC)]
+        if self.calib_right is not None:
+            cams.append((np.asarray(self.calib_right.R_BC), np.asarray(self.calib_right.p_BC, dtype=float)))
         stereo = self.calib_right is not None and p.stereo_landmarks
-        cand = landmark_candidates(
-            self.keyframes, self.landmarks, p.min_track_length, p.max_landmarks, stereo
-        )
-        if not cand:
-            return
-        xy, mask = track_matrix(self.keyframes, cand)
-        R_WB = np.stack([kf.x.R_WB for kf in self.keyframes])
-        p_WB = np.stack([kf.x.p_WB for kf in self.keyframes])
-        R_WC, p_WC = R_WB @ self._R_BC, p_WB + R_WB @ self._p_BC
-        if self.calib_right is not None:  # cam1 views after cam0's
-            xy1, mask1 = track_matrix(self.keyframes, cand, cam=1)
-            xy, mask = np.concatenate([xy, xy1], axis=1), np.concatenate([mask, mask1], axis=1)
-            R_WC = np.concatenate([R_WC, R_WB @ self.calib_right.R_BC])
-            p_WC = np.concatenate([p_WC, p_WB + R_WB @ np.asarray(self.calib_right.p_BC, dtype=float)])
-        tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, self._focal_px)
-        for f, fid in enumerate(cand):
-            if tri.valid[f]:
-                self.landmarks[fid] = tri.p_W[f].copy()
-        self._n_bad += int(np.sum(tri.rms_error_px >= p.triangulation.max_reprojection_error_px))
+        limits = (p.min_track_length, p.max_landmarks, stereo)
+        tri = (p.triangulation, self._focal_px)
+        self._n_bad += triangulate_new(self.keyframes, self.landmarks, limits, cams, *tri)
 
-    def _optimize(self) -> None:
-        """Levenberg-Marquardt over the window with landmarks eliminated by the Schur complement."""
+    def _continue_solve(self) -> None:
+        """Spend the rest of the last keyframe's step budget on this (non-keyframe) frame."""
+        steps, self._pending_steps = self._pending_steps, 0
+        try:
+            self._optimize(steps, self._pending_damping, 0)
+            self._marginalize_full()
+        except (np.linalg.LinAlgError, FloatingPointError) as exc:
+            self._diverged_reason = f"numerical failure in the optimization: {exc}"
+        self._version += 1
+
+    def _optimize(self, steps: int, damping: float, carry: int) -> None:
+        """Levenberg-Marquardt over the window with landmarks eliminated by the Schur complement.
+
+        Args:
+            steps: Most trial steps now.
+            damping: Initial damping.
+            carry: Steps the next frame may spend when this solve stops unconverged (``_continue_solve``).
+        """
         t0 = time.perf_counter()
         p = self.params
         # 0. Re-integrate preintegrations whose bias moved far from its linearization point (lesson ch. 5).
@@ -389,11 +398,13 @@ class WindowEstimator:
         still = [k for k, kf in enumerate(self.keyframes) if kf.still]
         no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
         factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
-        lm = (p.max_iterations, p.initial_damping, p.relative_tolerance, p.min_cost_decrease)
+        lm = (steps, damping, p.relative_tolerance, p.min_cost_decrease)
         fej = [kf.x_fej for kf in self.keyframes] if p.first_estimate_jacobians else None
         sol = levenberg_marquardt(xs, pts, factors, self._weights, *lm, fej)
         xs, pts, sys = sol.xs, sol.pts, sol.system
         self.solve_iterations.append(sol.iterations)
+        self._pending_steps = 0 if sol.converged else carry
+        self._pending_damping = sol.damping
         for kf, x in zip(self.keyframes, xs, strict=True):
             kf.x = x
         for j, fid in enumerate(lm_ids):
@@ -401,6 +412,7 @@ class WindowEstimator:
         # 5. Covariances: the newest keyframe's (the inverse of its marginal information) and those the next
         #    keyframe's innovation test needs (:mod:`viotb.vio.window_nis`).
         self._marginals = WindowMarginals.from_system(sys, lm_ids)
+        self._solved = (sys, lm_ids)
         self._cov_newest = self._marginals.newest_covariance
         self._last_cost_per_res = sys.meas_cost / max(sys.n_res, 1)
         self._used = len(lm_ids)
@@ -421,68 +433,38 @@ class WindowEstimator:
         self, links: Iterable[int], still: list[int], no_motion: list[int], obs: tuple, obs1: tuple
     ) -> Factors:
         """The factors: IMU ``links``, prior, ``still``/``no_motion`` keyframes, ``obs`` (cam0), ``obs1``."""
-        key_to_k = {kf.key: k for k, kf in enumerate(self.keyframes)}
-        prior_k = [] if self.prior is None else [key_to_k[key] for key in self.prior.keys]
-        kfs = self.keyframes
-        return Factors(
-            imu=[(k, self.links[k].pre) for k in links],
-            prior=self.prior,
-            prior_k=prior_k,
-            still=still,
-            no_motion=[(k, kfs[k].t_s - kfs[k - 1].t_s) for k in no_motion],
-            obs=obs,
-            obs_right=obs1,
-        )
+        return window_factors(self.keyframes, self.links, self.prior, links, still, no_motion, obs, obs1)
+
+    def _marginalize_full(self) -> None:
+        """Marginalize the oldest keyframe when the window holds more than ``window_size``."""
+        if len(self.keyframes) > self.params.window_size:
+            self._marginalize_oldest()
 
     def _marginalize_oldest(self) -> None:
         """Fold the oldest keyframe and the landmarks it saw into a new linear prior (Schur complement)."""
-        old = self.keyframes[0]
-        lm_ids = sorted(f for f in old.obs.keys() | old.obs_right.keys() if f in self.landmarks)
-        pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
-        obs = observations(self.keyframes, lm_ids)
-        obs1 = observations(self.keyframes, lm_ids, cam=1)
-        xs = [kf.x for kf in self.keyframes]
-        # 1. Factors touching the marginalized variables: the prior, the oldest IMU link, its zero-velocity
-        #    and no-motion factors, and the observations of its landmarks.
-        nm = [1] if old.still and self.keyframes[1].still else []
-        f = self._factors([0], [0] if old.still else [], nm, obs, obs1)
-        xs_lin = fix_first_estimates(self.keyframes) if self.params.first_estimate_jacobians else None
-        sys = linearize(xs, pts, f, self._weights, xs_lin=xs_lin)
-        # 2. Eliminate those landmarks, then the oldest keyframe.
-        S, g_red, _ = schur_reduce(sys, 0.0)
-        H_p, g_p, _ = schur_complement(S, g_red, np.arange(NX))
-        rest = self.keyframes[1:]
-        self.prior = LinearPrior(H_p, g_p, [kf.key for kf in rest], [kf.x.copy() for kf in rest])
-        for fid in lm_ids:
-            drop_landmark(self.keyframes, self.landmarks, fid)
-        self.keyframes = rest
-        self.links = self.links[1:]
+        self.prior, self.keyframes, self.links = marginalize_oldest(
+            self.keyframes,
+            self.links,
+            self.landmarks,
+            self.prior,
+            self._weights,
+            self.params.first_estimate_jacobians,
+            self._solved,
+        )
+        self._solved = None
 
     def _check_divergence(self) -> None:
         if self._diverged_reason:
             return
-        p = self.params
-        kf = self.keyframes[-1]
-        vals = [kf.x.R_WB, kf.x.p_WB, kf.x.v_WB, kf.x.gyro_bias_rad_s, kf.x.accel_bias_m_s2, self._cov_newest]
-        if not all(np.all(np.isfinite(a)) for a in vals):
-            self._diverged_reason = "non-finite value in the newest keyframe state or covariance"
-            return
-        pos_sigma = float(np.sqrt(max(np.max(np.diag(self._cov_newest)[POS : POS + 3]), 0.0)))
-        if pos_sigma > p.max_position_sigma_m:
-            self._diverged_reason = (
-                f"position sigma {pos_sigma:.1f} m exceeds max_position_sigma_m={p.max_position_sigma_m}"
-            )
-            return
-        c = self._last_cost_per_res
-        gated = self._used + self._n_bad
-        runaway = gated >= p.runaway_min_features and self._n_bad > p.runaway_reject_ratio * gated
-        self._blowups = self._blowups + 1 if (c > p.max_cost_per_residual or runaway) else 0
-        if self._blowups >= p.blowup_keyframes:
-            self._diverged_reason = (
-                f"cost blow-up in {self._blowups} consecutive keyframes: cost per measurement residual "
-                f"{c:.1f} (limit {p.max_cost_per_residual}), {self._n_bad} of {gated} features rejected as "
-                f"outliers or inconsistent (limit {p.runaway_reject_ratio:.0%})"
-            )
+        self._diverged_reason, self._blowups = divergence_reason(
+            self.keyframes[-1].x,
+            self._cov_newest,
+            self.params,
+            self._last_cost_per_res,
+            self._used,
+            self._n_bad,
+            self._blowups,
+        )
 
     def _make_health(
         self, t_s: float, tracks: Tracks, innovation: InnovationTest | None = None

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
+from viotb.vio.triangulation import TriangulationParams, triangulate
 
 
 @dataclass
@@ -147,3 +148,44 @@ def fix_first_estimates(keyframes: list[Keyframe]) -> list[ImuValues]:
         if kf.x_fej is None:
             kf.x_fej = kf.x.copy()
     return [kf.x_fej for kf in keyframes]
+
+
+def triangulate_new(
+    keyframes: list[Keyframe],
+    landmarks: dict[int, np.ndarray],
+    limits: tuple[int, int, bool],
+    cams: list[tuple[np.ndarray, np.ndarray]],
+    params: TriangulationParams,
+    focal_px: float,
+) -> int:
+    """Triangulate the :func:`landmark_candidates` into ``landmarks`` (in place); return the rejected count.
+
+    Args:
+        keyframes: The window.
+        landmarks: Feature id -> point in W (m); the valid new points are added.
+        limits: ``(min_track_length, max_landmarks, stereo)`` of :func:`landmark_candidates`.
+        cams: ``(R_BC (3, 3), p_BC (3,) m)`` of cam0, then of cam1 on a stereo rig (its views after cam0's).
+        params: Triangulation settings.
+        focal_px: Focal length (px) of the reprojection gate.
+
+    Returns:
+        Candidates whose RMS reprojection error reached ``params.max_reprojection_error_px``.
+    """
+    cand = landmark_candidates(keyframes, landmarks, *limits)
+    if not cand:
+        return 0
+    R_WB = np.stack([kf.x.R_WB for kf in keyframes])
+    p_WB = np.stack([kf.x.p_WB for kf in keyframes])
+    xys, masks, R_WC, p_WC = [], [], [], []
+    for cam, (R_BC, p_BC) in enumerate(cams):
+        xy, mask = track_matrix(keyframes, cand, cam=cam)
+        xys.append(xy)
+        masks.append(mask)
+        R_WC.append(R_WB @ R_BC)
+        p_WC.append(p_WB + R_WB @ p_BC)
+    xy, mask = np.concatenate(xys, axis=1), np.concatenate(masks, axis=1)
+    tri = triangulate(np.concatenate(R_WC), np.concatenate(p_WC), xy, mask, params, focal_px)
+    for f, fid in enumerate(cand):
+        if tri.valid[f]:
+            landmarks[fid] = tri.p_W[f].copy()
+    return int(np.sum(tri.rms_error_px >= params.max_reprojection_error_px))

@@ -28,9 +28,20 @@ class WindowParams:
         outlier_threshold: Landmarks with any whitened reprojection error above this (sigmas) after the
             optimization are removed.
         max_iterations: Levenberg-Marquardt trial steps per keyframe (the solve's budget, counted in steps
-            so the same seed gives the same estimate: only keyframe frames solve, so it bounds the work of a
-            frame; a solve cut short continues from its values at the next keyframe). 5 rather than 6; 4
-            moved the head-walk recording's ATE from 3.3 to 3.8 cm and 3 aggressive's from 3.4 to 4.1 cm.
+            so the same seed gives the same estimate; a solve cut short continues from its values at the
+            next keyframe). 4 steps in all moved the head-walk recording's ATE from 3.3 to 3.8 cm and 3
+            aggressive's from 3.4 to 4.1 cm.
+        keyframe_frame_iterations: Of those steps, the most the keyframe's own frame takes; a solve that has
+            not converged by then takes the rest on the next frame when that is not a keyframe (from the
+            same values; the oldest keyframe is marginalized after it, at the values the steps reached; a
+            keyframe next instead continues the solve with its own budget, as a solve cut short always did).
+            5 of 5 (no continuation): on 12 s KLT recordings (process CPU time, loaded 2-core machine,
+            interleaved passes) 5 of 6 gave the same p99 within the machine's noise and ATE, but its
+            continuations took 7-10 % of the frames and raised the median frame by up to 1 ms (aggressive
+            7.1 -> 8.1 ms); 4 of 6 made a fifth of the frames continuations on aggressive and
+            head-look-around (median 7.3 -> 15.4 ms on aggressive); 4 of 6 with continuations allowed only
+            while under 40 % of the last 10 frames solved kept the median, but the p99 did not move
+            measurably and the ATE rose (circle 2.54 -> 2.62, figure8 2.34 -> 2.39 cm).
         initial_damping: Initial LM damping, relative to the diagonal.
         relative_tolerance: The iterations stop once a kept step lowers the cost by less than this fraction
             of it. 1e-4 rather than 1e-6: on the 12 s KLT recordings (figure-8, aggressive, fast rotation,
@@ -80,6 +91,18 @@ class WindowParams:
             3.23 / 3.64 -> 3.98, head-fast-turns 2.62 -> 2.74 / 2.68 -> 2.73. On simulated streams (4
             seeds, mean mm) aggressive 25.2 -> 21.5, figure8 18.1 -> 17.5, circle 26.4 -> 28.4, fast
             rotation 22.0 -> 24.6.
+        track_noise: Model each KLT track's error as white noise (``pixel_sigma_px``) plus a random walk
+            clocked by its image motion (``klt.track_random_walk_px2_per_px``, the MSCKF's model): the views
+            of a landmark are correlated and the reprojection factors are generalized least squares
+            (:mod:`viotb.vio.window_reprojection`). Only with the ``klt`` front end. Off: on 12 s KLT
+            renders (seed 0, ``keyframe_frame_iterations`` 4; position NEES / ATE cm, off -> on, 1 px
+            white) aggressive 8.8 / 2.19 -> 3.1 / 2.19, head-look-around 4.0 / 1.25 -> 2.1 / 1.52, circle
+            2.5 / 2.55 -> 1.6 / 2.57, figure8 1.9 / 2.35 -> 1.2 / 2.33, head-fast-turns 1.8 / 1.51 -> 1.0 /
+            2.02, hover 0.27 / 0.41 -> 0.22 / 0.44; with 0.5 px white (thresholds kept in px) aggressive
+            3.6 / 2.07, head-look-around 2.9 / 1.13, circle 2.2 / 2.61, figure8 1.8 / 2.45, head-fast-turns
+            1.5 / 2.05, hover 0.28 / 0.36. It fixes aggressive's overconfidence, but the ATE of the fast
+            turns grows by 0.5 cm and each linearization costs about 1.5-2x (the pose blocks of every pair
+            of views).
     """
 
     window_size: int = 10
@@ -94,6 +117,7 @@ class WindowParams:
     huber_threshold: float = 3.0
     outlier_threshold: float = 8.0
     max_iterations: int = 5
+    keyframe_frame_iterations: int = 5
     initial_damping: float = 1e-4
     relative_tolerance: float = 1e-4
     min_cost_decrease: float = 0.01
@@ -117,3 +141,15 @@ class WindowParams:
     blowup_keyframes: int = 5
     max_position_sigma_m: float = 100.0
     midpoint_rotation: bool = True
+    track_noise: bool = False
+
+
+def track_noise_q(p: WindowParams) -> float:
+    """``FactorWeights.track_q``: the KLT track random walk per px over the white variance (0 when off).
+
+    ``p.klt.track_random_walk_px2_per_px / p.pixel_sigma_px^2`` with ``p.track_noise`` and the ``klt`` front
+    end (the MSCKF's rule, :func:`viotb.vio.msckf_update.track_random_walk_px2_per_px`), else 0.
+    """
+    if not p.track_noise or p.frontend != "klt":
+        return 0.0
+    return p.klt.track_random_walk_px2_per_px / p.pixel_sigma_px**2

@@ -10,7 +10,7 @@ marginal information of the newest keyframe.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import sparse
@@ -20,7 +20,15 @@ from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
 from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, retract_batch, stack_values
-from viotb.vio.window_factors import NX, project, reprojection
+from viotb.vio.window_factors import NX
+from viotb.vio.window_reprojection import (
+    TrackBlocks,
+    TrackPairs,
+    WhiteBlocks,
+    add_reprojection,
+    summing_matrix,
+    track_pairs,
+)
 
 
 @dataclass(frozen=True)
@@ -38,6 +46,10 @@ class FactorWeights:
         R_BC1: Cam1-to-body rotation of a stereo rig, shape (3, 3), or None (mono).
         p_BC1: Cam1 origin in B (m), shape (3,), or None.
         sigma_norm1: Cam1 measurement sigma in its normalized coordinates (pixel sigma / its focal length).
+        track_q: Correlated track noise ``track_random_walk_px2_per_px / pixel_sigma_px^2`` (per px of image
+            motion; :mod:`viotb.vio.window_reprojection`), 0 for white noise.
+        focal_px: Cam0's focal length (px), the clock of the track noise.
+        focal_px1: Cam1's.
     """
 
     noise: ImuNoise
@@ -49,6 +61,9 @@ class FactorWeights:
     R_BC1: np.ndarray | None = None
     p_BC1: np.ndarray | None = None
     sigma_norm1: float | None = None
+    track_q: float = 0.0
+    focal_px: float = 1.0
+    focal_px1: float = 1.0
 
 
 def stereo_weights(
@@ -102,6 +117,12 @@ class LinearSystem:
         n_res: Measurement residuals (prior excluded).
         max_err: Largest whitened reprojection error per landmark (sigmas), shape (L,).
         meas_cost: Cost without the prior.
+        reprojection_blocks: Per camera, the reprojection factors' blocks
+            (:mod:`viotb.vio.window_reprojection`), so the system of a subset of the landmarks needs no new
+            linearization (:func:`viotb.vio.window_marginalize.landmark_subsystem`).
+        imu_blocks: ``(k (K,), J^T J (K, 2 NX, 2 NX), J^T r (K, 2 NX))`` of the whitened IMU factors between
+            keyframes ``k`` and ``k + 1``, or None.
+        prior_terms: ``(indices (P NX,), H (P NX, P NX), gradient (P NX,))`` of the prior here, or None.
     """
 
     H: np.ndarray
@@ -113,6 +134,11 @@ class LinearSystem:
     n_res: int
     max_err: np.ndarray
     meas_cost: float
+    reprojection_blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = field(
+        default_factory=list
+    )
+    imu_blocks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    prior_terms: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 def pose_index(n_kf: int) -> np.ndarray:
@@ -129,35 +155,27 @@ class PreparedFactors:
         prior_R0: Orientations of the prior's linearization points, shape (P, 3, 3).
         prior_rest0: Their ``[p, v, b_g, b_a]``, shape (P, 12).
         sums: Per camera (``obs``, then ``obs_right``), the sparse 0/1 matrices that sum the M observations'
-            terms per keyframe (N, M) and per landmark (L, M).
+            terms per keyframe (N, M) and per landmark (L, M), or with correlated track noise
+            (``FactorWeights.track_q > 0``) the pairs of views of each landmark.
     """
 
     imu: ImuFactorStack
     prior_R0: np.ndarray
     prior_rest0: np.ndarray
-    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix]]
+    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs]
 
 
 def prepare(f: Factors, w8: FactorWeights, n_kf: int, n_lm: int) -> PreparedFactors:
     """What :func:`linearize` reuses for ``f`` over ``n_kf`` keyframes and ``n_lm`` landmarks."""
     R0, rest0 = (np.zeros((0, 3, 3)), np.zeros((0, 12))) if f.prior is None else stack_values(f.prior.x0)
-    sums = []
-    for obs in (f.obs, f.obs_right):
+    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs] = []
+    for obs, focal_px in ((f.obs, w8.focal_px), (f.obs_right, w8.focal_px1)):
+        if obs is not None and len(obs[0]) and w8.track_q > 0.0:
+            sums.append(track_pairs(obs, n_kf, n_lm, focal_px, w8.track_q))
+            continue
         kf_i, lm_i = (np.zeros(0, dtype=np.int64),) * 2 if obs is None else obs[:2]
-        sums.append((_summing_matrix(kf_i, n_kf), _summing_matrix(lm_i, n_lm)))
+        sums.append((summing_matrix(kf_i, n_kf), summing_matrix(lm_i, n_lm)))
     return PreparedFactors(ImuFactorStack.build(f.imu, w8.noise), R0, rest0, sums)
-
-
-def _summing_matrix(row: np.ndarray, n_rows: int) -> sparse.csr_matrix:
-    """The 0/1 matrix (n_rows, M) with a one at ``(row[m], m)``: its product sums the M terms per row.
-
-    Built from its CSR arrays directly (a stable sort of ``row``), which is several times faster than
-    from coordinates.
-    """
-    row = np.asarray(row, dtype=np.int64)
-    order = np.argsort(row, kind="stable")
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(row, minlength=n_rows))])
-    return sparse.csr_matrix((np.ones(len(row)), order, indptr), shape=(n_rows, len(row)))
 
 
 def linearize(
@@ -195,6 +213,7 @@ def linearize(
     n_res = 0
     R, rest = stack_values(xs)
     R_lin, rest_lin = (R, rest) if xs_lin is None else stack_values(xs_lin)
+    imu_blocks = prior_terms = None
     # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
     if len(prep.imu.k):
         r, J_i, J_j = imu_factors(prep.imu, R, rest, jacobians=xs_lin is None)
@@ -214,6 +233,7 @@ def linearize(
                 H4[k_i + a, :, k_i + b, :] += JtJ[:, a * NX : (a + 1) * NX, b * NX : (b + 1) * NX]
         cost += 0.5 * float(np.sum(r_w * r_w))
         n_res += NX * len(prep.imu.k)
+        imu_blocks = (k_i, JtJ, Jtr)
     # b. Linear prior (OKVIS eq. 9): 0.5 dx^T H dx + g^T dx at dx = x [-] x0.
     pr = f.prior
     if pr is not None:
@@ -221,7 +241,9 @@ def linearize(
         idx = (k_pr[:, None] * NX + np.arange(NX)[None, :]).ravel()
         dx = boxminus_batch(R[k_pr], rest[k_pr], prep.prior_R0, prep.prior_rest0).ravel()
         H[np.ix_(idx, idx)] += pr.H
-        g[idx] += pr.H @ dx + pr.g
+        g_pr = pr.H @ dx + pr.g
+        g[idx] += g_pr
+        prior_terms = (idx, pr.H, g_pr)
         prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
         cost += prior_cost
     # b2. Zero-velocity factors ``v / sigma`` on still keyframes.
@@ -250,90 +272,19 @@ def linearize(
     g_l = np.zeros((L, 3))
     E = np.zeros((L, N, 6, 3))
     max_err = np.zeros(L)
-    cams = [(f.obs, w8.R_BC, w8.p_BC, w8.sigma_norm, prep.sums[0])]
+    blocks: list[WhiteBlocks | TrackBlocks] = []
+    k_h = w8.huber_threshold
+    cams = [(f.obs, (w8.R_BC, w8.p_BC, w8.sigma_norm, k_h), prep.sums[0])]
     if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
-        cams.append((f.obs_right, w8.R_BC1, w8.p_BC1, w8.sigma_norm1, prep.sums[1]))
-    for obs, R_BC, p_BC, sigma_norm, sums in cams:
-        poses = (R, rest[:, :3], R_lin, rest_lin[:, :3])
-        c, n = _add_reprojection(
-            H, g, H_ll, g_l, E, max_err, poses, pts, obs, R_BC, p_BC, sigma_norm, w8, sums
-        )
+        cams.append((f.obs_right, (w8.R_BC1, w8.p_BC1, w8.sigma_norm1, k_h), prep.sums[1]))
+    poses = (R, rest[:, :3], R_lin, rest_lin[:, :3])
+    for obs, cam, sums in cams:
+        c, n = add_reprojection(H, g, H_ll, g_l, E, max_err, poses, pts, obs, cam, sums, blocks)
         cost += c
         n_res += n
-    return LinearSystem(H, g, H_ll, g_l, E.reshape(L, N * 6, 3), cost, n_res, max_err, cost - prior_cost)
-
-
-def _add_reprojection(
-    H: np.ndarray,
-    g: np.ndarray,
-    H_ll: np.ndarray,
-    g_l: np.ndarray,
-    E: np.ndarray,
-    max_err: np.ndarray,
-    poses: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-    pts: np.ndarray,
-    obs: tuple[np.ndarray, np.ndarray, np.ndarray],
-    R_BC: np.ndarray,
-    p_BC: np.ndarray,
-    sigma_norm: float,
-    w8: FactorWeights,
-    sums: tuple[sparse.csr_matrix, sparse.csr_matrix],
-) -> tuple[float, int]:
-    """Add one camera's Huber-weighted reprojection factors to the system (in place).
-
-    Args:
-        H: Keyframe information (N NX, N NX).
-        g: Keyframe gradient (N NX,).
-        H_ll: Landmark information blocks (L, 3, 3).
-        g_l: Landmark gradients (L, 3).
-        E: Pose-landmark blocks (L, N, 6, 3).
-        max_err: Largest whitened error per landmark (L,), raised in place.
-        poses: Keyframe ``(R_WB (N, 3, 3), p_WB (N, 3))`` of the residuals, then of the Jacobians.
-        pts: Landmarks in W (m), shape (L, 3).
-        obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` in this camera (one observation per
-            keyframe and landmark).
-        R_BC: This camera's rotation to the body, shape (3, 3).
-        p_BC: Its origin in B (m), shape (3,).
-        sigma_norm: Its measurement sigma in normalized coordinates.
-        w8: The Huber threshold.
-        sums: Sparse 0/1 matrices summing the observations per keyframe (N, M) and landmark (L, M).
-
-    Returns:
-        ``(robust cost, residual count)``.
-    """
-    N = len(poses[0])
-    kf_i, lm_i, xy = obs
-    if not len(kf_i):
-        return 0.0, 0
-    if poses[2] is poses[0]:
-        z, _, J_pose, J_pt = reprojection(poses[0][kf_i], poses[1][kf_i], pts[lm_i], R_BC, p_BC)
-    else:  # first-estimate Jacobians, residuals at the current values
-        _, _, J_pose, J_pt = reprojection(poses[2][kf_i], poses[3][kf_i], pts[lm_i], R_BC, p_BC)
-        z = project(poses[0][kf_i], poses[1][kf_i], pts[lm_i], R_BC, p_BC)
-    s = 1.0 / sigma_norm
-    r = (z - xy) * s
-    e = np.linalg.norm(r, axis=1)
-    k_h = w8.huber_threshold
-    w = np.where(e <= k_h, 1.0, k_h / np.maximum(e, 1e-12))
-    cost = float(0.5 * np.sum(np.where(e <= k_h, e * e, 2.0 * k_h * e - k_h * k_h)))
-    np.maximum.at(max_err, lm_i, e)
-    # One product gives every block: with J = [J_pose, J_pt, r] / sigma (M, 2, 10), w J^T J holds the
-    # pose-pose (6x6), pose-point (E), point-point and both gradients. Sums over the observations of each
-    # keyframe and each landmark are sparse products (faster than ``np.add.at``); the pose blocks sit on
-    # the diagonal of H seen as (N, NX, N, NX).
-    J = np.concatenate([J_pose * s, J_pt * s, r[:, :, None]], axis=2)
-    A = (np.swapaxes(J, 1, 2) * w[:, None, None]) @ J
-    M = len(kf_i)
-    sum_k, sum_l = sums
-    per_kf = (sum_k @ A.reshape(M, 100)).reshape(N, 10, 10)
-    per_lm = (sum_l @ A.reshape(M, 100)).reshape(-1, 10, 10)
-    k_all = np.arange(N)
-    H.reshape(N, NX, N, NX)[k_all, :6, k_all, :6] += per_kf[:, :6, :6]
-    g.reshape(N, NX)[:, :6] += per_kf[:, :6, 9]
-    H_ll += per_lm[:, 6:9, 6:9]
-    g_l += per_lm[:, 6:9, 9]
-    E[lm_i, kf_i] += A[:, :6, 6:9]
-    return cost, 2 * len(kf_i)
+    E_flat = E.reshape(L, N * 6, 3)
+    meas, terms = cost - prior_cost, (blocks, imu_blocks, prior_terms)
+    return LinearSystem(H, g, H_ll, g_l, E_flat, cost, n_res, max_err, meas, *terms)
 
 
 def schur_reduce(sys: LinearSystem, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
