@@ -38,7 +38,7 @@ import numpy as np
 from viotb.vio.camera import CameraCalibration
 from viotb.vio.frontend import FrontEnd, Tracks, make_frontend
 from viotb.vio.frontend_stereo import make_stereo_frontend
-from viotb.vio.initialization import InertialInitializer, InitParams
+from viotb.vio.initialization import InertialInitializer, init_params_for
 from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
 from viotb.vio.marginalization import LinearPrior
@@ -119,7 +119,7 @@ class WindowEstimator:
             mono = make_frontend(p.frontend, calib.camera, p.klt, "WindowParams")
             frontend = make_stereo_frontend(mono, calib, calib_right, p.stereo)
         self.frontend = frontend
-        self.initializer = InertialInitializer(calib, noise, InitParams())
+        self.initializer = InertialInitializer(calib, noise, init_params_for(p.frontend))
         self.buffer = ImuBuffer()
         self._focal_px = 0.5 * (calib.camera.fx + calib.camera.fy)
         self._sigma_norm = p.pixel_sigma_px / self._focal_px
