@@ -74,3 +74,32 @@ def test_tracker_with_anchors_follows_a_translating_texture():
     # A pure translation: every track should stay on its texture point; anchoring must not be worse.
     assert errors[True] < 0.15
     assert errors[True] <= errors[False] + 0.02
+
+
+def test_affine_anchor_follows_a_patch_stretched_by_zoom():
+    """A zoom stretches every patch, as a wide-angle pinhole does towards its edges.
+
+    The true point of a feature first seen at ``u0`` in a frame zoomed by ``s0`` is ``c + (s / s0) (u0 - c)``.
+    """
+    camera = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    base = _texture(5)
+    centre = np.array([159.5, 119.5])
+    frames = []
+    for k in range(30):
+        s = 1.0 + 0.025 * k  # up to 1.7x
+        M = np.float32([[s, 0.0, (1.0 - s) * centre[0]], [0.0, s, (1.0 - s) * centre[1]]])
+        frames.append((s, cv2.warpAffine(base, M, (320, 240), flags=cv2.INTER_CUBIC).astype(np.uint8)))
+    rms = {}
+    for anchor in (False, True):
+        trk = KltTracker(camera, KltParams(anchor_templates=anchor))
+        first: dict[int, tuple[float, np.ndarray]] = {}
+        err = []
+        for k, (s, img) in enumerate(frames):
+            tracks = trk.process(CameraFrame(t_s=0.05 * k, image=img), 0.05 * k)
+            for tid, uv in zip(tracks.ids, tracks.uv_px, strict=True):
+                s0, u0 = first.setdefault(int(tid), (s, uv.copy()))
+                truth = centre + (s / s0) * (u0 - centre)
+                err.append(np.linalg.norm(uv - truth))
+        rms[anchor] = float(np.sqrt(np.mean(np.square(err))))
+    assert rms[True] < 0.5 * rms[False]
+    assert rms[True] < 0.2

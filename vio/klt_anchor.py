@@ -12,11 +12,11 @@ frame-to-frame position; the refinement is kept only when it stays within a few 
 the patch still matches (zero-mean normalized cross-correlation). When it fails (the view changed too
 much), the frame-to-frame position is kept and the template is taken anew there.
 
-The alignment is translation-only inverse-compositional Lucas-Kanade (Baker and Matthews, "Lucas-Kanade 20
-years on: a unifying framework", IJCV 56(3), 2004, section 3.2): the template's gradients and 2x2 Gauss-Newton
-Hessian are computed once when the template is taken; each iteration only samples the image. The residual is
-taken between zero-mean, unit-variance patches, so an exposure change does not bias it. All tracks are
-aligned at once in numpy (no per-feature Python loop).
+The alignment is affine inverse-compositional Lucas-Kanade (Baker and Matthews, "Lucas-Kanade 20 years
+on: a unifying framework", IJCV 56(3), 2004, section 3.2): the template's steepest-descent images and 6x6
+Gauss-Newton matrix are computed once when the template is taken; each iteration only samples the image.
+The residual is taken between zero-mean, unit-variance patches, so an exposure change does not bias it.
+All tracks are aligned at once in numpy (no per-feature Python loop).
 """
 
 from __future__ import annotations
@@ -37,12 +37,12 @@ def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
         y: Row coordinates (px), shape (N, P).
 
     Returns:
-        float64 samples, shape (N, P).
+        float32 samples, shape (N, P).
     """
     mx = np.ascontiguousarray(x, dtype=np.float32)
     my = np.ascontiguousarray(y, dtype=np.float32)
     out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.astype(np.float64).reshape(x.shape)
+    return out.reshape(x.shape)
 
 
 def _normalize(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -53,7 +53,13 @@ def _normalize(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class TemplateAnchors:
-    """First-appearance templates of live tracks, and their alignment into a new image.
+    """First-appearance templates of live tracks, and their affine alignment into a new image.
+
+    Each track keeps its template, the steepest-descent images and inverse Hessian of the affine
+    inverse-compositional alignment, and the template's current linear warp ``A`` (2x2: template offsets
+    to image offsets), carried from frame to frame: a wide-angle pinhole stretches a patch by up to 2x
+    between the image centre and its edge, which a translation-only match follows by sliding off its
+    point (README "KLT track error").
 
     Args:
         half_size_px: Template half side (px): the patch is ``(2 h + 1)^2`` pixels.
@@ -62,15 +68,19 @@ class TemplateAnchors:
         min_zncc: Smallest accepted zero-mean normalized cross-correlation of the aligned patch.
         min_texture: Smallest template RMS (gray levels) for a template to be kept (a flat patch cannot be
             aligned).
+        max_stretch: Largest accepted singular value of ``A`` (and smallest ``1 / max_stretch``).
+        damping: Levenberg damping of the 6x6 Gauss-Newton matrix (relative to its diagonal).
     """
 
     def __init__(
         self,
-        half_size_px: int = 5,
+        half_size_px: int = 6,
         iterations: int = 4,
         max_shift_px: float = 2.0,
         min_zncc: float = 0.85,
         min_texture: float = 4.0,
+        max_stretch: float = 4.0,
+        damping: float = 1e-3,
     ) -> None:
         """Create an empty template store."""
         r = np.arange(-half_size_px, half_size_px + 1, dtype=float)
@@ -86,15 +96,51 @@ class TemplateAnchors:
         self.max_shift_px = max_shift_px
         self.min_zncc = min_zncc
         self.min_texture = min_texture
-        self.ids = np.zeros(0, dtype=np.int64)
-        self._tmpl = np.zeros((0, self._dx.size))  # normalized templates (N, P)
-        self._grad = np.zeros((0, self._dx.size, 2))  # their gradients (N, P, 2)
-        self._hinv = np.zeros((0, 2, 2))  # inverse Gauss-Newton Hessians (N, 2, 2)
+        self.max_stretch = max_stretch
+        self.damping = damping
+        n_px = self._dx.size
+        # Slot storage: a track's template lives in one row until its track ends (no copies per frame).
+        self._slot_of: dict[int, int] = {}
+        self._free: list[int] = []
+        self._tmpl = np.zeros((0, n_px), dtype=np.float32)  # normalized templates (S, P)
+        self._sd = np.zeros((0, n_px, 6), dtype=np.float32)  # steepest-descent images (S, P, 6)
+        self._hinv = np.zeros((0, 6, 6))  # inverse Gauss-Newton matrices (S, 6, 6)
+        self._A = np.zeros((0, 2, 2))  # current linear warps (S, 2, 2)
+
+    @property
+    def ids(self) -> np.ndarray:
+        """Ids of the tracks that have a template, sorted, shape (N,)."""
+        return np.array(sorted(self._slot_of), dtype=np.int64)
+
+    def _slots(self, n: int) -> np.ndarray:
+        """``n`` free rows (the storage doubles when full)."""
+        while len(self._free) < n:
+            old = len(self._tmpl)
+            grow = max(old, n, 64)
+            self._tmpl = np.vstack([self._tmpl, np.zeros((grow, self._tmpl.shape[1]), dtype=np.float32)])
+            self._sd = np.concatenate([self._sd, np.zeros((grow, *self._sd.shape[1:]), dtype=np.float32)])
+            self._hinv = np.concatenate([self._hinv, np.zeros((grow, 6, 6))])
+            self._A = np.concatenate([self._A, np.zeros((grow, 2, 2))])
+            self._free.extend(range(old + grow - 1, old - 1, -1))
+        return np.array([self._free.pop() for _ in range(n)], dtype=np.int64)
 
     def _inside(self, image: np.ndarray, uv: np.ndarray, margin: float) -> np.ndarray:
         h, w = image.shape
         m = self.half + margin
         return (uv[:, 0] >= m) & (uv[:, 0] <= w - 1 - m) & (uv[:, 1] >= m) & (uv[:, 1] <= h - 1 - m)
+
+    def _inside_warped(self, image: np.ndarray, c: np.ndarray, A: np.ndarray) -> np.ndarray:
+        """Whether each warped patch ``c + A @ (dx, dy)`` lies inside the image with a 1 px margin."""
+        h, w = image.shape
+        ex = self.half * (np.abs(A[:, 0, 0]) + np.abs(A[:, 0, 1])) + 1.0
+        ey = self.half * (np.abs(A[:, 1, 0]) + np.abs(A[:, 1, 1])) + 1.0
+        return (c[:, 0] >= ex) & (c[:, 0] <= w - 1 - ex) & (c[:, 1] >= ey) & (c[:, 1] <= h - 1 - ey)
+
+    def _sample(self, image: np.ndarray, c: np.ndarray, A: np.ndarray) -> np.ndarray:
+        """The image at ``c + A @ (dx, dy)`` for every template point, shape (N, P)."""
+        x = c[:, :1] + A[:, 0, :1] * self._dx + A[:, 0, 1:] * self._dy
+        y = c[:, 1:] + A[:, 1, :1] * self._dx + A[:, 1, 1:] * self._dy
+        return sample_bilinear(image, x, y)
 
     def take(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray) -> None:
         """Take (or take anew) the templates of tracks ``ids`` at pixels ``uv_px`` (N, 2) of ``image``.
@@ -113,37 +159,36 @@ class TemplateAnchors:
         big = sample_bilinear(image, uv[:, :1] + self._dx1, uv[:, 1:] + self._dy1).reshape(-1, side1, side1)
         inner = big[:, 1:-1, 1:-1].reshape(len(ids), -1)
         tmpl, rms = _normalize(inner)
-        gx = 0.5 * (big[:, 1:-1, 2:] - big[:, 1:-1, :-2]).reshape(len(ids), -1)
-        gy = 0.5 * (big[:, 2:, 1:-1] - big[:, :-2, 1:-1]).reshape(len(ids), -1)
-        grad = np.stack([gx, gy], axis=2) / np.maximum(rms, 1e-9)[:, None, None]
-        hess = np.einsum("npi,npj->nij", grad, grad)
-        det = hess[:, 0, 0] * hess[:, 1, 1] - hess[:, 0, 1] ** 2
-        keep = (rms >= self.min_texture) & (
-            det > 1e-9 * np.maximum(np.trace(hess, axis1=1, axis2=2), 1.0) ** 2
-        )
+        scale = 1.0 / np.maximum(rms, 1e-9)[:, None]
+        gx = 0.5 * (big[:, 1:-1, 2:] - big[:, 1:-1, :-2]).reshape(len(ids), -1) * scale
+        gy = 0.5 * (big[:, 2:, 1:-1] - big[:, :-2, 1:-1]).reshape(len(ids), -1) * scale
+        # dW/dp of W(x; p) = (I + [[p1, p3], [p2, p4]]) x + (p5, p6) at p = 0 (Baker & Matthews 2004, sec. 2).
+        dx, dy = self._dx, self._dy
+        sd = np.stack([gx * dx, gy * dx, gx * dy, gy * dy, gx, gy], axis=2)
+        hess = np.einsum("npi,npj->nij", sd, sd)
+        hess += self.damping * hess[:, np.arange(6), np.arange(6)][:, :, None] * np.eye(6)
+        keep = (rms >= self.min_texture) & (np.linalg.det(hess) > 0.0)
         if not np.any(keep):
             return
-        hess, det = hess[keep], det[keep]
-        hinv = np.stack([hess[:, 1, 1], -hess[:, 0, 1], -hess[:, 1, 0], hess[:, 0, 0]], axis=1).reshape(
-            -1, 2, 2
-        )
-        self.ids = np.concatenate([self.ids, ids[keep]])
-        self._tmpl = np.vstack([self._tmpl, tmpl[keep]])
-        self._grad = np.concatenate([self._grad, grad[keep]])
-        self._hinv = np.concatenate([self._hinv, hinv / det[:, None, None]])
+        slots = self._slots(int(keep.sum()))
+        self._tmpl[slots] = tmpl[keep]
+        self._sd[slots] = sd[keep]
+        self._hinv[slots] = np.linalg.inv(hess[keep])
+        self._A[slots] = np.eye(2)
+        for tid, slot in zip(ids[keep].tolist(), slots.tolist(), strict=True):
+            self._slot_of[tid] = slot
 
     def drop(self, ids: np.ndarray) -> None:
         """Forget the templates of ``ids`` (absent ids are ignored)."""
-        if len(self.ids) == 0 or len(ids) == 0:
-            return
-        keep = ~np.isin(self.ids, ids)
-        self.ids, self._tmpl = self.ids[keep], self._tmpl[keep]
-        self._grad, self._hinv = self._grad[keep], self._hinv[keep]
+        for tid in np.asarray(ids, dtype=np.int64).tolist():
+            slot = self._slot_of.pop(tid, None)
+            if slot is not None:
+                self._free.append(slot)
 
     def keep_only(self, ids: np.ndarray) -> None:
         """Forget every template whose track is not in ``ids`` (the tracks that ended)."""
-        if len(self.ids):
-            self.drop(self.ids[~np.isin(self.ids, ids)])
+        live = set(np.asarray(ids, dtype=np.int64).tolist())
+        self.drop(np.array([tid for tid in self._slot_of if tid not in live], dtype=np.int64))
 
     def refine(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Align the templates of ``ids`` into ``image``, starting from the frame-to-frame pixels ``uv_px``.
@@ -160,28 +205,34 @@ class TemplateAnchors:
         uv = np.asarray(uv_px, dtype=float).reshape(-1, 2).copy()
         ids = np.asarray(ids, dtype=np.int64)
         anchored = np.zeros(len(ids), dtype=bool)
-        if len(self.ids) == 0 or len(ids) == 0:
+        slot_of = self._slot_of
+        found = np.array([slot_of.get(tid, -1) for tid in ids.tolist()], dtype=np.int64)
+        which = np.flatnonzero(found >= 0)
+        rows = found[which]
+        if len(rows) == 0:
             return uv, anchored
-        order = np.argsort(self.ids)
-        pos = np.searchsorted(self.ids[order], ids)
-        pos = np.clip(pos, 0, len(order) - 1)
-        has = self.ids[order][pos] == ids
-        which, rows = np.flatnonzero(has), order[pos[has]]
         start = uv[which]
-        p = start.copy()
-        tmpl, grad, hinv = self._tmpl[rows], self._grad[rows], self._hinv[rows]
+        c, A = start.copy(), self._A[rows].copy()
+        tmpl, sd, hinv = self._tmpl[rows], self._sd[rows], self._hinv[rows]
         img = np.asarray(image, dtype=np.float32)
-        ok = self._inside(img, p, 1.0)
+        ok = self._inside_warped(img, c, A)
         for _ in range(self.iterations):
-            ok &= self._inside(img, p, 1.0)
-            warped, _ = _normalize(sample_bilinear(img, p[:, :1] + self._dx, p[:, 1:] + self._dy))
-            # Inverse compositional step (Baker & Matthews 2004, eq. 35): p <- p - H^-1 sum grad T (I(W) - T).
-            step = np.einsum("nij,nj->ni", hinv, np.einsum("npi,np->ni", grad, warped - tmpl))
-            p = np.where(ok[:, None], p - step, p)
-        ok &= self._inside(img, p, 0.0)
-        warped, _ = _normalize(sample_bilinear(img, p[:, :1] + self._dx, p[:, 1:] + self._dy))
+            warped, _ = _normalize(self._sample(img, c, A))
+            # Inverse compositional step (Baker & Matthews 2004, eq. 35): dp = H^-1 sum SD^T (I(W) - T),
+            # then W <- W o W(dp)^-1: A <- A (I + D)^-1, c <- c - A (I + D)^-1 t.
+            dp = np.einsum("nij,nj->ni", hinv, np.einsum("npi,np->ni", sd, warped - tmpl))
+            inv = np.linalg.inv(np.eye(2) + dp[:, [0, 2, 1, 3]].reshape(-1, 2, 2))
+            A_new = A @ inv
+            c_new = c - np.einsum("nij,nj->ni", A_new, dp[:, 4:])
+            A = np.where(ok[:, None, None], A_new, A)
+            c = np.where(ok[:, None], c_new, c)
+            ok &= self._inside_warped(img, c, A)
+        warped, _ = _normalize(self._sample(img, c, A))
         zncc = np.mean(warped * tmpl, axis=1)
-        ok &= (zncc >= self.min_zncc) & (np.linalg.norm(p - start, axis=1) <= self.max_shift_px)
-        uv[which[ok]] = p[ok]
+        sv = np.linalg.svd(A, compute_uv=False)
+        ok &= (zncc >= self.min_zncc) & (np.linalg.norm(c - start, axis=1) <= self.max_shift_px)
+        ok &= (sv[:, 0] <= self.max_stretch) & (sv[:, 1] >= 1.0 / self.max_stretch)
+        uv[which[ok]] = c[ok]
         anchored[which[ok]] = True
+        self._A[rows[ok]] = A[ok]
         return uv, anchored
