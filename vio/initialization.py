@@ -62,7 +62,7 @@ class InitParams:
         track_random_walk_px2_per_px: Variance (px^2) a track's error gains per px the feature moves,
             on top of the white ``pixel_sigma_px``; the dynamic solve whitens each track with it (the
             MSCKF's model, :func:`~viotb.vio.update_helpers.random_walk_whitener`). 0: white errors, as
-            simulated features have; KLT: ``KltParams.track_random_walk_px2_per_px`` (0.025).
+            simulated features have; KLT: see :func:`init_params_for`.
         min_depth_m: Depth floor (m) of the row weights of the linear solve.
         min_features: Minimum number of features tracked in at least ``min_feature_obs`` frames.
         min_feature_obs: Observations a feature needs to enter the dynamic solve.
