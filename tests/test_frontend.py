@@ -131,7 +131,9 @@ def test_klt_backward_pass_on_kept_points_equals_the_full_forward_backward_check
     img0 = _texture(rng)
     M = np.array([[1.02, 0.0, -1.5], [0.0, 1.02, 6.0]])  # zoom + shift: some points leave the image
     img1 = cv2.warpAffine(img0, M, (320, 240), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    trk = KltTracker(cam)
+    trk = KltTracker(
+        cam, KltParams(anchor_templates=False)
+    )  # the LK passes alone (anchoring: test_klt_anchor)
     trk.process(CameraFrame(0.0, image=img0), 0.0)
     p, prev = trk.params, trk._prev_pts.copy()
     lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels}

@@ -26,7 +26,7 @@ def test_refine_recovers_a_subpixel_shift_under_an_exposure_change():
     image = _texture(1)
     uv = rng.uniform(30.0, 200.0, (60, 2))
     ids = np.arange(60)
-    anchors = TemplateAnchors()
+    anchors = TemplateAnchors(affine_after_px=0.0)  # affine even for the tracks that moved under 3 px
     anchors.take(image, ids, uv)
     shift = np.array([0.37, -0.81])
     start = uv + shift + rng.uniform(-1.0, 1.0, uv.shape)  # a frame-to-frame guess up to 1 px off
@@ -35,10 +35,16 @@ def test_refine_recovers_a_subpixel_shift_under_an_exposure_change():
     # Bilinear against bicubic resampling and cv2.remap's 1/32 px weights: well under a tenth of a pixel.
     assert np.abs(refined[anchored] - (uv[anchored] + shift)).max() < 0.1
     np.testing.assert_array_equal(refined[~anchored], start[~anchored])
+    # By default a track within 3 px of its template is aligned in translation only: as accurate here.
+    default = TemplateAnchors()
+    default.take(image, ids, uv)
+    near, flagged = default.refine(1.3 * _shifted(image, shift) + 10.0, ids, start)
+    assert flagged.mean() > 0.95
+    assert np.abs(near[flagged] - (uv[flagged] + shift)).max() < 0.1
 
 
 def test_refine_rejects_a_patch_that_no_longer_matches_and_ignores_unknown_ids():
-    anchors = TemplateAnchors()
+    anchors = TemplateAnchors(affine_after_px=0.0)
     uv = np.array([[100.0, 100.0], [150.0, 120.0]])
     anchors.take(_texture(2), np.array([4, 7]), uv)
     other = _texture(3)  # another texture: nothing there looks like the templates

@@ -70,6 +70,9 @@ class TemplateAnchors:
             aligned).
         max_stretch: Largest accepted singular value of ``A`` (and smallest ``1 / max_stretch``).
         damping: Levenberg damping of the 6x6 Gauss-Newton matrix (relative to its diagonal).
+        affine_after_px: A track closer than this to where its template was taken is aligned in
+            translation only: there is no stretch to correct yet, and on a still real image (EuRoC micro,
+            window estimator) the 6-parameter fit is noisier than the 2-parameter one.
     """
 
     def __init__(
@@ -81,6 +84,7 @@ class TemplateAnchors:
         min_texture: float = 4.0,
         max_stretch: float = 4.0,
         damping: float = 1e-3,
+        affine_after_px: float = 3.0,
     ) -> None:
         """Create an empty template store."""
         r = np.arange(-half_size_px, half_size_px + 1, dtype=float)
@@ -98,6 +102,7 @@ class TemplateAnchors:
         self.min_texture = min_texture
         self.max_stretch = max_stretch
         self.damping = damping
+        self.affine_after_px = affine_after_px
         n_px = self._dx.size
         # Slot storage: a track's template lives in one row until its track ends (no copies per frame).
         self._slot_of: dict[int, int] = {}
@@ -105,7 +110,9 @@ class TemplateAnchors:
         self._tmpl = np.zeros((0, n_px), dtype=np.float32)  # normalized templates (S, P)
         self._sd = np.zeros((0, n_px, 6), dtype=np.float32)  # steepest-descent images (S, P, 6)
         self._hinv = np.zeros((0, 6, 6))  # inverse Gauss-Newton matrices (S, 6, 6)
+        self._hinv_t = np.zeros((0, 2, 2))  # inverses of their translation blocks (S, 2, 2)
         self._A = np.zeros((0, 2, 2))  # current linear warps (S, 2, 2)
+        self._uv0 = np.zeros((0, 2))  # where each template was taken (S, 2)
 
     @property
     def ids(self) -> np.ndarray:
@@ -120,7 +127,9 @@ class TemplateAnchors:
             self._tmpl = np.vstack([self._tmpl, np.zeros((grow, self._tmpl.shape[1]), dtype=np.float32)])
             self._sd = np.concatenate([self._sd, np.zeros((grow, *self._sd.shape[1:]), dtype=np.float32)])
             self._hinv = np.concatenate([self._hinv, np.zeros((grow, 6, 6))])
+            self._hinv_t = np.concatenate([self._hinv_t, np.zeros((grow, 2, 2))])
             self._A = np.concatenate([self._A, np.zeros((grow, 2, 2))])
+            self._uv0 = np.concatenate([self._uv0, np.zeros((grow, 2))])
             self._free.extend(range(old + grow - 1, old - 1, -1))
         return np.array([self._free.pop() for _ in range(n)], dtype=np.int64)
 
@@ -174,7 +183,9 @@ class TemplateAnchors:
         self._tmpl[slots] = tmpl[keep]
         self._sd[slots] = sd[keep]
         self._hinv[slots] = np.linalg.inv(hess[keep])
+        self._hinv_t[slots] = np.linalg.inv(hess[keep][:, 4:, 4:])
         self._A[slots] = np.eye(2)
+        self._uv0[slots] = uv[keep]
         for tid, slot in zip(ids[keep].tolist(), slots.tolist(), strict=True):
             self._slot_of[tid] = slot
 
@@ -200,7 +211,7 @@ class TemplateAnchors:
 
         Returns:
             ``(uv_refined (N, 2), anchored (N,) bool)``: the refined position where the alignment was
-            accepted, else the input position; ``anchored`` says which.
+            accepted, else the input position; ``anchored`` says which (False: take the template anew).
         """
         uv = np.asarray(uv_px, dtype=float).reshape(-1, 2).copy()
         ids = np.asarray(ids, dtype=np.int64)
@@ -212,15 +223,19 @@ class TemplateAnchors:
         if len(rows) == 0:
             return uv, anchored
         start = uv[which]
+        near = np.linalg.norm(start - self._uv0[rows], axis=1) < self.affine_after_px
         c, A = start.copy(), self._A[rows].copy()
-        tmpl, sd, hinv = self._tmpl[rows], self._sd[rows], self._hinv[rows]
+        tmpl, sd, hinv, hinv_t = self._tmpl[rows], self._sd[rows], self._hinv[rows], self._hinv_t[rows]
         img = np.asarray(image, dtype=np.float32)
         ok = self._inside_warped(img, c, A)
         for _ in range(self.iterations):
             warped, _ = _normalize(self._sample(img, c, A))
             # Inverse compositional step (Baker & Matthews 2004, eq. 35): dp = H^-1 sum SD^T (I(W) - T),
             # then W <- W o W(dp)^-1: A <- A (I + D)^-1, c <- c - A (I + D)^-1 t.
-            dp = np.einsum("nij,nj->ni", hinv, np.einsum("npi,np->ni", sd, warped - tmpl))
+            grad = np.einsum("npi,np->ni", sd, warped - tmpl)
+            dp = np.einsum("nij,nj->ni", hinv, grad)
+            dp[near, :4] = 0.0  # translation only: the 2x2 block's solve
+            dp[near, 4:] = np.einsum("nij,nj->ni", hinv_t[near], grad[near, 4:])
             inv = np.linalg.inv(np.eye(2) + dp[:, [0, 2, 1, 3]].reshape(-1, 2, 2))
             A_new = A @ inv
             c_new = c - np.einsum("nij,nj->ni", A_new, dp[:, 4:])
