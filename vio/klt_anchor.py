@@ -225,7 +225,8 @@ class TemplateAnchors:
         start = uv[which]
         near = np.linalg.norm(start - self._uv0[rows], axis=1) < self.affine_after_px
         c, A = start.copy(), self._A[rows].copy()
-        tmpl, sd, hinv, hinv_t = self._tmpl[rows], self._sd[rows], self._hinv[rows], self._hinv_t[rows]
+        tmpl, sd, hinv = self._tmpl[rows], self._sd[rows], self._hinv[rows]
+        hinv_near = self._hinv_t[rows[near]]  # the translation blocks' inverses of the near tracks
         img = np.asarray(image, dtype=np.float32)
         ok = self._inside_warped(img, c, A)
         for _ in range(self.iterations):
@@ -235,7 +236,7 @@ class TemplateAnchors:
             grad = np.einsum("npi,np->ni", sd, warped - tmpl)
             dp = np.einsum("nij,nj->ni", hinv, grad)
             dp[near, :4] = 0.0  # translation only: the 2x2 block's solve
-            dp[near, 4:] = np.einsum("nij,nj->ni", hinv_t[near], grad[near, 4:])
+            dp[near, 4:] = np.einsum("nij,nj->ni", hinv_near, grad[near, 4:])
             inv = np.linalg.inv(np.eye(2) + dp[:, [0, 2, 1, 3]].reshape(-1, 2, 2))
             A_new = A @ inv
             c_new = c - np.einsum("nij,nj->ni", A_new, dp[:, 4:])
