@@ -82,3 +82,28 @@ def test_append_row_equals_append_tick_and_checks_its_length():
     assert list(by_row.phase) == list(by_tick.phase)
     with pytest.raises(ValueError, match="24 values, expected 25"):
         by_row.append_row("mission", [0.0] * 24)
+
+
+@pytest.mark.parametrize("in_memory", [False, True])
+def test_deferred_cells_are_filled_before_reads_and_before_their_chunk_leaves_memory(in_memory):
+    rng = np.random.default_rng(2)
+    log, rows, calls = FlightLog(in_memory=in_memory, chunk_rows=4), [], []
+    for k in range(11):
+        row = rng.normal(size=25).tolist()
+        sigma = rng.uniform(size=3).tolist()
+        rows.append(row[:7] + sigma + row[10:])
+        if k % 3 == 0:
+            log.append_row("mission", rows[-1])
+        else:  # the sigma cells come later, from a callable
+            later = ("p_sigma_W", lambda s=sigma: calls.append(1) or s)
+            log.append_row("mission", row[:7] + [np.nan] * 3 + row[10:], later)
+        if k == 5:
+            log.resolve_deferred()  # what the flight runner does at each frame
+    # Deferred rows 1, 2, 4, 5, 7, 8, 10: rows 1-2 filled when chunk 0 left memory (before row 4), 4-5 by the
+    # explicit call, 7 before row 8; 8 and 10 still wait.
+    assert len(calls) == 5
+    want = np.array(rows)[:, 7:10]
+    np.testing.assert_array_equal(log.p_sigma_W, want)  # a read fills the pending ones first
+    assert len(calls) == 7
+    np.testing.assert_array_equal(np.concatenate([c[0] for c in log.tick_chunks("p_sigma_W")]), want)
+    assert len(calls) == 7  # each callable ran once

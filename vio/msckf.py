@@ -23,6 +23,7 @@ from viotb.vio.camera import CameraCalibration
 from viotb.vio.feature_database import FeatureDatabase
 from viotb.vio.frontend import FrontEnd, Tracks, make_frontend
 from viotb.vio.frontend_stereo import make_stereo_frontend
+from viotb.vio.imu_prediction import LazyCovarianceEstimate, PredictionChain
 from viotb.vio.initialization import InertialInitializer, init_params_for
 from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lie import log_so3
@@ -43,7 +44,6 @@ from viotb.vio.state import (
     IMU_BLOCK,
     POS,
     TIME_OFFSET_BLOCK,
-    ImuValues,
     State,
     ekf_update,
     is_psd,
@@ -124,7 +124,7 @@ class MsckfEstimator:
         self._diverged_reason = ""
         self._runaway_count = 0
         self._version = 0
-        self._pred_cache: tuple[int, float, ImuValues, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._chain: PredictionChain | None = None
         self.last_stats = UpdateStats()
         self.last_slam_stats = SlamStats()
         self.zupt_count = 0
@@ -180,39 +180,34 @@ class MsckfEstimator:
         self._prev_tracks = tracks
 
     def estimate(self) -> StateEstimate | None:
-        """Latest state propagated to the newest IMU sample (the filter itself is not changed)."""
+        """Latest state propagated to the newest IMU sample (the filter itself is not changed).
+
+        The mean is predicted one IMU interval per new sample; the covariance only when ``cov`` is read
+        (:mod:`viotb.vio.imu_prediction`), with the same values.
+        """
         st = self.state
         if st is None:
             return None
         t_new = self._last_imu.t_s if self._last_imu is not None else st.t_s
-        cache = self._pred_cache
-        if cache is not None and cache[0] == self._version and cache[1] == t_new:
-            # No IMU sample since the last call (control ticks outnumber IMU samples): the same prediction.
-            _, t_out, vals, _, _, cov = cache
-        else:
-            if cache is not None and cache[0] == self._version and cache[1] <= t_new:
-                _, t0, vals0, phi0, q0, _ = cache
-            else:
-                t0, vals0, phi0, q0 = st.t_s, st.imu, np.eye(15), np.zeros((15, 15))
-            vals, phi, q = self.propagator.predict(vals0, t0, t_new)
-            phi_tot, q_tot = phi @ phi0, phi @ q0 @ phi.T + q
-            t_out = max(t_new, t0)
+        chain = self._chain
+        if chain is None or chain.version != self._version or chain.t_s > t_new:
             imu_sl = st.block(IMU_BLOCK).indices
-            P = st.cov[imu_sl, imu_sl]  # read-only view: no copy per control tick
-            cov = phi_tot @ P @ phi_tot.T + q_tot
-            self._pred_cache = (self._version, t_out, vals, phi_tot, q_tot, cov)
+            chain = self._chain = PredictionChain(
+                self._version, st.t_s, st.imu, st.cov[imu_sl, imu_sl], self.propagator
+            )
+        index, vals = chain.advance(t_new)
         omega = np.zeros(3)
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
-        return StateEstimate(
-            t_s=t_out,
-            R_WB=vals.R_WB.copy(),
-            p_WB=vals.p_WB.copy(),
-            v_WB=vals.v_WB.copy(),
-            gyro_bias_rad_s=vals.gyro_bias_rad_s.copy(),
-            accel_bias_m_s2=vals.accel_bias_m_s2.copy(),
-            omega_B_rad_s=omega,
-            cov=0.5 * (cov + cov.T),
+        return LazyCovarianceEstimate(
+            chain.t_s,
+            vals.R_WB.copy(),
+            vals.p_WB.copy(),
+            vals.v_WB.copy(),
+            vals.gyro_bias_rad_s.copy(),
+            vals.accel_bias_m_s2.copy(),
+            omega,
+            source=(chain, index),
         )
 
     def health(self) -> HealthStatus:

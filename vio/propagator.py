@@ -28,38 +28,47 @@ variance ``density^2 / dt`` so it enters through the bias columns of ``Phi``; th
 
 from __future__ import annotations
 
-from enum import Enum
-
 import numpy as np
-from viotb.vio.lie import (
-    exp_so3,
-    exp_so3_batch,
-    right_jacobian_so3,
-    right_jacobian_so3_batch,
-    skew,
-    skew_batch,
+from viotb.vio.imu_integration import (
+    Integration,
+    StepMean,
+    discrete_noise,
+    discrete_noise_batch,
+    integrate_batch,
+    integrate_mean,
+    integrate_step,
+    step_transition,
+    step_transitions,
+    transition_batch,
 )
 from viotb.vio.state import (
-    BA,
-    BG,
     IMU_DIM,
-    POS,
-    THETA,
-    VEL,
     ImuValues,
     State,
     augment_clone,
     ekf_propagate,
     set_imu_fej,
 )
-from viotb.vio.types import ImuNoise, ImuSample, gravity_W
+from viotb.vio.types import ImuNoise, ImuSample
 
-
-class Integration(str, Enum):
-    """Integration method of the nominal state."""
-
-    DISCRETE = "discrete"
-    RK4 = "rk4"
+__all__ = [
+    "ImuBuffer",
+    "Integration",
+    "Propagator",
+    "StepMean",
+    "discrete_noise",
+    "discrete_noise_batch",
+    "integrate_batch",
+    "integrate_mean",
+    "integrate_step",
+    "interpolate_readings",
+    "propagate_values",
+    "select_imu_readings",
+    "step_transition",
+    "step_transitions",
+    "transition_batch",
+    "validate_imu_sample",
+]
 
 
 def validate_imu_sample(sample: ImuSample, last_t_s: float | None) -> None:
@@ -169,207 +178,6 @@ def select_imu_readings(
         [interpolate_readings(t_s, accel, t0_s), accel[i0:i1], interpolate_readings(t_s, accel, t1_s)]
     )
     return t_out, g_out, a_out
-
-
-def integrate_step(
-    imu: ImuValues,
-    w0: np.ndarray,
-    w1: np.ndarray,
-    a0: np.ndarray,
-    a1: np.ndarray,
-    dt: float,
-    method: Integration,
-    imu_fej: ImuValues | None = None,
-) -> tuple[ImuValues, np.ndarray]:
-    """Integrate one IMU interval and return the new nominal state and the transition matrix.
-
-    Args:
-        imu: State at the start of the interval (biases are held).
-        w0: Bias-corrected angular rate (rad/s) at the start, shape (3,); ``w1`` at the end.
-        w1: See ``w0``.
-        a0: Bias-corrected specific force (m/s^2) at the start, shape (3,); ``a1`` at the end.
-        a1: See ``a0``.
-        dt: Interval length (s), > 0.
-        method: Integration method.
-        imu_fej: First estimates at the start (None: use ``imu``, i.e. the plain Jacobian).
-
-    Returns:
-        ``(new_state, phi)`` with ``phi`` (15, 15) the error-state transition matrix.
-    """
-    g = gravity_W()
-    R0, p0, v0 = imu.R_WB, imu.p_WB, imu.v_WB
-    phi = np.eye(IMU_DIM)
-    if method == Integration.DISCRETE:
-        w, a = 0.5 * (w0 + w1), 0.5 * (a0 + a1)
-        theta = w * dt
-        R1 = R0 @ exp_so3(theta)
-        Ra = R0 @ a
-        v1 = v0 + (g + Ra) * dt
-        p1 = p0 + v0 * dt + 0.5 * (g + Ra) * dt * dt
-        phi[VEL : VEL + 3, BA : BA + 3] = -R0 * dt
-        phi[POS : POS + 3, BA : BA + 3] = -0.5 * R0 * dt * dt
-        jr_theta = right_jacobian_so3(theta)
-    else:
-        half = 0.5 * dt
-        theta_m = w0 * half + (w1 - w0) * (half * half) / (2.0 * dt)
-        theta = 0.5 * (w0 + w1) * dt
-        Rm = R0 @ exp_so3(theta_m)
-        R1 = R0 @ exp_so3(theta)
-        am = 0.5 * (a0 + a1)
-        f0, fm, f1 = R0 @ a0 + g, Rm @ am + g, R1 @ a1 + g
-        v1 = v0 + dt / 6.0 * (f0 + 4.0 * fm + f1)
-        p1 = p0 + v0 * dt + dt * dt / 6.0 * (f0 + 2.0 * fm)
-        # d f(tau) / d b_g = R(tau) [a(tau)]x Jr(theta(tau)) tau, since theta(tau) holds -b_g tau.
-        Jm = Rm @ skew(am) @ right_jacobian_so3(theta_m) * half
-        jr_theta = right_jacobian_so3(theta)
-        J1 = R1 @ skew(a1) @ jr_theta * dt
-        phi[VEL : VEL + 3, BG : BG + 3] = dt / 6.0 * (4.0 * Jm + J1)
-        phi[POS : POS + 3, BG : BG + 3] = dt * dt / 6.0 * (2.0 * Jm)
-        phi[VEL : VEL + 3, BA : BA + 3] = -dt / 6.0 * (R0 + 4.0 * Rm + R1)
-        phi[POS : POS + 3, BA : BA + 3] = -dt * dt / 6.0 * (R0 + 2.0 * Rm)
-    fej = imu if imu_fej is None else imu_fej
-    phi[THETA : THETA + 3, THETA : THETA + 3] = R1.T @ fej.R_WB
-    phi[THETA : THETA + 3, BG : BG + 3] = -jr_theta * dt
-    phi[VEL : VEL + 3, THETA : THETA + 3] = -skew(v1 - fej.v_WB - g * dt) @ fej.R_WB
-    phi[POS : POS + 3, THETA : THETA + 3] = (
-        -skew(p1 - fej.p_WB - fej.v_WB * dt - 0.5 * g * dt * dt) @ fej.R_WB
-    )
-    phi[POS : POS + 3, VEL : VEL + 3] = np.eye(3) * dt
-    new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
-    return new, phi
-
-
-def discrete_noise(phi: np.ndarray, noise: ImuNoise, dt: float) -> np.ndarray:
-    """Discrete process noise ``Q`` (15, 15) of one interval of length ``dt`` (s).
-
-    White noise acts like a bias offset held over the interval with variance ``density^2 / dt`` (Kalibr), so
-    its input matrix is the bias columns of ``phi`` (rows theta, p, v); the random walks add
-    ``density^2 dt`` on the bias blocks.
-    """
-    Bg = phi[:9, BG : BG + 3]
-    Ba = phi[:9, BA : BA + 3]
-    Q = np.zeros((IMU_DIM, IMU_DIM))
-    Q[:9, :9] = (noise.gyro_noise_density_rad_s_sqrthz**2 / dt) * (Bg @ Bg.T) + (
-        noise.accel_noise_density_m_s2_sqrthz**2 / dt
-    ) * (Ba @ Ba.T)
-    Q[BG : BG + 3, BG : BG + 3] = np.eye(3) * noise.gyro_random_walk_rad_s2_sqrthz**2 * dt
-    Q[BA : BA + 3, BA : BA + 3] = np.eye(3) * noise.accel_random_walk_m_s3_sqrthz**2 * dt
-    return Q
-
-
-def _rotate(R: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Stacked ``R[k] @ x[k]``: ``R`` (m, 3, 3), ``x`` (m, 3) -> (m, 3)."""
-    return (R @ x[:, :, None])[:, :, 0]
-
-
-def integrate_batch(
-    imu: ImuValues,
-    w0: np.ndarray,
-    w1: np.ndarray,
-    a0: np.ndarray,
-    a1: np.ndarray,
-    dt: np.ndarray,
-    method: Integration,
-    imu_fej: ImuValues | None = None,
-) -> tuple[ImuValues, np.ndarray]:
-    """:func:`integrate_step` over consecutive intervals at once: the mean chained, ``Phi`` stacked.
-
-    Only the rotation and position chains are Python loops (a 3x3 product, two 3-vector sums per interval,
-    in the per-sample order of operations); the velocity is a running sum (``np.cumsum`` accumulates in
-    order) and every transition block is computed for all intervals in one array operation.
-
-    Args:
-        imu: State at the start of the first interval (biases are held).
-        w0: Bias-corrected rates (rad/s) at the interval starts, shape (m, 3); ``w1`` at the ends.
-        w1: See ``w0``.
-        a0: Bias-corrected specific forces (m/s^2) at the starts, shape (m, 3); ``a1`` at the ends (like w).
-        a1: See ``a0``.
-        dt: Interval lengths (s), shape (m,), all > 0.
-        method: Integration method.
-        imu_fej: First estimates at the start of the first interval (None: ``imu``).
-
-    Returns:
-        ``(state at the end, phi (m, 15, 15))``, ``phi[k]`` the transition of interval k.
-    """
-    g = gravity_W()
-    m = dt.shape[0]
-    dtc = dt[:, None]
-    dt3 = dt[:, None, None]
-    # 1. Rotations at the interval starts (R[:-1]) and ends (R[1:]).
-    theta = 0.5 * (w0 + w1) * dtc
-    if method == Integration.DISCRETE:
-        E = exp_so3_batch(theta)
-        Jr = right_jacobian_so3_batch(theta)
-    else:
-        # One Rodrigues call for the end and mid-interval angles together.
-        half = 0.5 * dtc
-        both = np.vstack([theta, w0 * half + (w1 - w0) * (half * half) / (2.0 * dtc)])
-        E_both, Jr_both = exp_so3_batch(both), right_jacobian_so3_batch(both)
-        E, Em, Jr, Jrm = E_both[:m], E_both[m:], Jr_both[:m], Jr_both[m:]
-    R = np.empty((m + 1, 3, 3))
-    R[0] = imu.R_WB
-    for k in range(m):
-        R[k + 1] = R[k] @ E[k]
-    R0, R1 = R[:-1], R[1:]
-    phi = np.zeros((m, IMU_DIM, IMU_DIM))
-    phi.reshape(m, -1)[:, :: IMU_DIM + 1] = 1.0  # identity diagonals
-    # 2. Velocity and position increments, and the bias columns of Phi.
-    if method == Integration.DISCRETE:
-        acc = g + _rotate(R0, 0.5 * (a0 + a1))
-        dv = acc * dtc
-        dp_acc = 0.5 * acc * dtc * dtc
-        phi[:, VEL : VEL + 3, BA : BA + 3] = -R0 * dt3
-        phi[:, POS : POS + 3, BA : BA + 3] = -0.5 * R0 * dt3 * dt3
-    else:
-        Rm = R0 @ Em
-        am = 0.5 * (a0 + a1)
-        f0 = _rotate(R0, a0) + g
-        fm = _rotate(Rm, am) + g
-        f1 = _rotate(R1, a1) + g
-        dv = dtc / 6.0 * (f0 + 4.0 * fm + f1)
-        dp_acc = dtc * dtc / 6.0 * (f0 + 2.0 * fm)
-        # d f(tau) / d b_g = R(tau) [a(tau)]x Jr(theta(tau)) tau, since theta(tau) holds -b_g tau.
-        Jm = Rm @ skew_batch(am) @ Jrm * (0.5 * dt3)
-        J1 = R1 @ skew_batch(a1) @ Jr * dt3
-        phi[:, VEL : VEL + 3, BG : BG + 3] = dt3 / 6.0 * (4.0 * Jm + J1)
-        phi[:, POS : POS + 3, BG : BG + 3] = dt3 * dt3 / 6.0 * (2.0 * Jm)
-        phi[:, VEL : VEL + 3, BA : BA + 3] = -dt3 / 6.0 * (R0 + 4.0 * Rm + R1)
-        phi[:, POS : POS + 3, BA : BA + 3] = -dt3 * dt3 / 6.0 * (R0 + 2.0 * Rm)
-    v = np.cumsum(np.vstack([imu.v_WB[None], dv]), axis=0)
-    # p_{k+1} = (p_k + v_k dt_k) + dp_k in the per-sample order (a cumsum would group the terms otherwise).
-    vdt = v[:-1] * dtc
-    p = np.empty((m + 1, 3))
-    p[0] = imu.p_WB
-    for k in range(m):
-        p[k + 1] = p[k] + vdt[k] + dp_acc[k]
-    # 3. First-estimates blocks: interval 0 starts at the first estimates, the others at the chained values.
-    fej = imu if imu_fej is None else imu_fej
-    R0f, v0f, p0f = R0.copy(), v[:-1].copy(), p[:-1].copy()
-    R0f[0], v0f[0], p0f[0] = fej.R_WB, fej.v_WB, fej.p_WB
-    phi[:, THETA : THETA + 3, THETA : THETA + 3] = np.swapaxes(R1, 1, 2) @ R0f
-    phi[:, THETA : THETA + 3, BG : BG + 3] = -Jr * dt3
-    phi[:, VEL : VEL + 3, THETA : THETA + 3] = -skew_batch(v[1:] - v0f - g * dtc) @ R0f
-    phi[:, POS : POS + 3, THETA : THETA + 3] = (
-        -skew_batch(p[1:] - p0f - v0f * dtc - 0.5 * g * dtc * dtc) @ R0f
-    )
-    for i in range(3):
-        phi[:, POS + i, VEL + i] = dt
-    new = ImuValues(R[m].copy(), p[m], v[m], imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
-    return new, phi
-
-
-def discrete_noise_batch(phi: np.ndarray, noise: ImuNoise, dt: np.ndarray) -> np.ndarray:
-    """Stacked :func:`discrete_noise`: ``phi`` (m, 15, 15), ``dt`` (m,) s -> ``Q`` (m, 15, 15)."""
-    Bg = phi[:, :9, BG : BG + 3]
-    Ba = phi[:, :9, BA : BA + 3]
-    s_g = (noise.gyro_noise_density_rad_s_sqrthz**2 / dt)[:, None, None]
-    s_a = (noise.accel_noise_density_m_s2_sqrthz**2 / dt)[:, None, None]
-    Q = np.zeros(phi.shape)
-    Q[:, :9, :9] = s_g * (Bg @ np.swapaxes(Bg, 1, 2)) + s_a * (Ba @ np.swapaxes(Ba, 1, 2))
-    for i in range(3):
-        Q[:, BG + i, BG + i] = noise.gyro_random_walk_rad_s2_sqrthz**2 * dt
-        Q[:, BA + i, BA + i] = noise.accel_random_walk_m_s3_sqrthz**2 * dt
-    return Q
 
 
 def propagate_values(
@@ -491,6 +299,38 @@ class Propagator:
             return start_imu.copy(), np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM))
         t, g, a = select_imu_readings(*self.buffer.arrays(), start_t_s, t_s)
         return propagate_values(start_imu, t, g, a, self.method, self.noise)
+
+    def predict_mean(
+        self, start_imu: ImuValues, start_t_s: float, t_s: float
+    ) -> tuple[ImuValues, StepMean | tuple[np.ndarray, np.ndarray]]:
+        """:meth:`predict` that leaves a single interval's ``Phi`` and ``Q`` to be built when needed.
+
+        The same values as :meth:`predict`. The per-control-tick call (``start_t_s`` and ``t_s`` the two
+        newest readings' times) takes those rows directly; :func:`select_imu_readings` returns the same ones.
+
+        Returns:
+            ``(values at t_s, step)``: ``step`` the interval's :class:`StepMean` (``Phi`` from
+            :func:`step_transition`, ``Q`` from :func:`discrete_noise`) when ``[start_t_s, t_s]`` is one
+            interval, else ``(Phi, Q)`` of the span as :meth:`predict` returns them.
+        """
+        n = len(self.buffer)
+        if t_s <= start_t_s or n == 0:
+            return start_imu.copy(), (np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM)))
+        t, g, a = self.buffer.arrays()
+        if n >= 2 and t[n - 2] == start_t_s and t[n - 1] == t_s:
+            t, g, a = t[n - 2 :], g[n - 2 :], a[n - 2 :]
+        else:
+            t, g, a = select_imu_readings(t, g, a, start_t_s, t_s)
+        dt = np.diff(t)
+        k = np.flatnonzero(dt > 0.0)
+        if k.size != 1:
+            vals, phi, q = propagate_values(start_imu, t, g, a, self.method, self.noise)
+            return vals, (phi, q)
+        j = int(k[0])
+        w = g[j : j + 2] - start_imu.gyro_bias_rad_s
+        f = a[j : j + 2] - start_imu.accel_bias_m_s2
+        step = integrate_mean(start_imu, w[0], w[1], f[0], f[1], float(dt[j]), self.method)
+        return step.new, step
 
     def propagate_and_clone(self, state: State, t_cam_s: float) -> None:
         """Propagate to the IMU time ``t_cam_s + time_offset`` and clone the pose keyed by ``t_cam_s``."""

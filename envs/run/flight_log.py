@@ -12,7 +12,7 @@ which is how the flight's metrics are computed (:mod:`viotb.envs.run.flight_metr
 from __future__ import annotations
 
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +65,17 @@ class _Rows:
         self._n_full = 0
         self._buf = np.empty((chunk_rows, width))
         self.n = 0
+
+    def spills_next(self) -> bool:
+        """Whether :meth:`next_row` will first move the full current chunk out."""
+        return self.n > 0 and self.n == (self._n_full + 1) * self._chunk_rows
+
+    def row(self, index: int) -> np.ndarray:
+        """Row ``index`` (counted from the first) of the current chunk, writable, shape (width,)."""
+        k = index - self._n_full * self._chunk_rows
+        if not 0 <= k < min(self.n - self._n_full * self._chunk_rows, self._chunk_rows):
+            raise IndexError(f"row {index} is not in the current chunk")
+        return self._buf[k]
 
     def next_row(self) -> np.ndarray:
         """The next row to fill, shape (width,) (a view into the current chunk)."""
@@ -144,6 +155,7 @@ class FlightLog:
         self._phase_index: dict[str, int] = {}
         self._frames = _Rows(2, 1024, in_memory=True)
         self.frame_conditions: list[tuple[str, ...]] = []
+        self._deferred: list[tuple[int, int | slice, Callable[[], Sequence[float]]]] = []
 
     def __len__(self) -> int:
         """Number of control ticks logged."""
@@ -172,19 +184,35 @@ class FlightLog:
                 cells.extend([float(v)] * width)
         self.append_row(phase, cells)
 
-    def append_row(self, phase: str, row: list[float]) -> None:
+    def append_row(
+        self,
+        phase: str,
+        row: list[float],
+        deferred: tuple[str, Callable[[], Sequence[float]]] | None = None,
+    ) -> None:
         """Add one control tick from its 25 floats in column order (``t_s``, ``p_true_W``... ``accel_B``).
 
         The flight runner's per-tick path (:meth:`append_tick` without the per-column dispatch): one row
         assignment into the current chunk.
+
+        Args:
+            phase: Flight phase name.
+            row: The 25 values.
+            deferred: ``(column name, fn)``: that column's cells are ``fn()``, called later, in order, by
+                :meth:`resolve_deferred` (before any read and before the row's chunk leaves memory), so
+                that values computed lazily (the estimate's covariance) are computed in one batch.
 
         Raises:
             ValueError: A row that is not 25 values long.
         """
         if len(row) != _TICK_WIDTH:
             raise ValueError(f"FlightLog.append_row: {len(row)} values, expected {_TICK_WIDTH}")
+        if self._deferred and self._ticks.spills_next():
+            self.resolve_deferred()
         k = self._ticks.n
         self._ticks.next_row()[:] = row
+        if deferred is not None:
+            self._deferred.append((k, _TICK_SLICES[deferred[0]], deferred[1]))
         if k == self._phase_codes.shape[0]:
             self._phase_codes = np.concatenate([self._phase_codes, np.empty_like(self._phase_codes)])
         code = self._phase_index.get(phase)
@@ -192,6 +220,12 @@ class FlightLog:
             code = self._phase_index[phase] = len(self._phase_names)
             self._phase_names.append(phase)
         self._phase_codes[k] = code
+
+    def resolve_deferred(self) -> None:
+        """Fill the cells of every deferred column (see :meth:`append_row`), oldest row first."""
+        pending, self._deferred = self._deferred, []
+        for k, key, fn in pending:
+            self._ticks.row(k)[key] = fn()
 
     def append_frame(self, t_s: float, tracked_features: int, conditions: tuple[str, ...]) -> None:
         """Add one delivered camera frame."""
@@ -212,6 +246,7 @@ class FlightLog:
             AttributeError: An unknown column name (raised before the first chunk).
         """
         keys = [self._tick_key(name) for name in names]
+        self.resolve_deferred()
         for chunk in self._ticks.chunks():
             yield tuple(chunk[:, key] for key in keys)
 
@@ -242,4 +277,6 @@ class FlightLog:
         """The tick columns (``t_s``, ``p_true_W``, ...) as read-only arrays of the filled rows."""
         if name.startswith("_"):
             raise AttributeError(f"FlightLog has no attribute {name!r}")
-        return self._ticks.column(self._tick_key(name))
+        key = self._tick_key(name)
+        self.resolve_deferred()
+        return self._ticks.column(key)

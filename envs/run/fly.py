@@ -21,6 +21,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 from viotb.controllers import SE3Controller, SE3Gains
@@ -36,6 +37,7 @@ from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import rotz, yaw_from_rotmat
 from viotb.vio.recovery import RecoveringEstimator
+from viotb.vio.types import StateEstimate
 
 ProgressFn = Callable[[float, float], None]
 
@@ -177,6 +179,7 @@ def fly(
                 else:
                     diverged, reason = True, f"health monitor: {cond.evidence}"
             log.append_frame(loop.t_s, h.tracked_features, h.conditions)
+            log.resolve_deferred()  # the covariances since the last frame, in one batch
             if lc is not None and loop.last_frame is not None and _loop_phase(lc, seq):
                 frame_image = loop.last_frame.image
                 lc.on_frame(loop.t_s, frame_image, loop.estimate(), h.tracked_features, loop.truth())
@@ -263,25 +266,39 @@ def _null_notes(
     return [f"{', '.join(keys)}: null ({why})"] if keys else []
 
 
+def _sigma_in_gauge(est: StateEstimate, gauge: tuple[float, float, float, float, float]) -> tuple:
+    """Position sigmas (m) along the truth frame's axes: ``sqrt(diag(R_g C R_g^T))`` in floats."""
+    c, s = gauge[0], gauge[1]
+    (cxx, cxy, _), (cyx, cyy, _), (_, _, czz) = est.cov_position_W_m2.tolist()
+    vxx = c * c * cxx - c * s * (cxy + cyx) + s * s * cyy
+    vyy = s * s * cxx + c * s * (cxy + cyx) + c * c * cyy
+    return (math.sqrt(max(vxx, 0.0)), math.sqrt(max(vyy, 0.0)), math.sqrt(max(czz, 0.0)))
+
+
 def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, tr, thrusts) -> None:
     """Append one control tick to the log (setpoint and estimate mapped to the truth frame by the gauge).
 
     The gauge is a yaw about z and a translation, applied in floats (:func:`_gauge_floats`): the values
     equal the matrix form ``R_g @ p + t_g``, ``sqrt(diag(R_g C R_g^T))``, ``yaw(R_g R_WB)`` to round-off.
+    An estimate whose covariance is not computed yet (``LazyCovarianceEstimate`` of
+    :mod:`viotb.vio.imu_prediction`) has its sigmas filled in later by the log
+    (:meth:`FlightLog.resolve_deferred`, once per frame), so that the covariances between two frames are
+    computed in one batch.
     """
     imu = loop.last_imu
     nan3 = (math.nan, math.nan, math.nan)
     p_est = p_sigma = p_set = nan3
     yaw_est = math.nan
+    deferred = None
     if gauge is not None:
         c, s, t0, t1, t2 = gauge
         if est is not None:
             x, y, z = est.p_WB.tolist()
             p_est = (c * x - s * y + t0, s * x + c * y + t1, z + t2)
-            (cxx, cxy, _), (cyx, cyy, _), (_, _, czz) = est.cov_position_W_m2.tolist()
-            vxx = c * c * cxx - c * s * (cxy + cyx) + s * s * cyy
-            vyy = s * s * cxx + c * s * (cxy + cyx) + c * c * cyy
-            p_sigma = (math.sqrt(max(vxx, 0.0)), math.sqrt(max(vyy, 0.0)), math.sqrt(max(czz, 0.0)))
+            if getattr(est, "cov_ready", True):
+                p_sigma = _sigma_in_gauge(est, gauge)
+            else:
+                deferred = ("p_sigma_W", partial(_sigma_in_gauge, est, gauge))
             (r00, _, _), (r10, _, _), _ = est.R_WB.tolist()
             yaw_est = math.atan2(s * r00 + c * r10, c * r00 - s * r10)
         if setpoint is not None:
@@ -294,4 +311,5 @@ def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, 
         phase,
         [loop.t_s, *tr.p_WB.tolist(), *p_est, *p_sigma, *p_set, yaw_from_rotmat(tr.R_WB), yaw_est,
          *np.asarray(thrusts, dtype=float).tolist(), *gyro, *accel],
+        deferred,
     )  # fmt: skip
