@@ -28,9 +28,6 @@ from viotb.controllers.types import FlatOutput
 _CONTINUITY_TOL_M = 1e-3
 """Sequence items must join within this distance (m)."""
 
-_BINOMIAL = ((1,), (1, 1), (1, 2, 1), (1, 3, 3, 1))
-"""Rows 0-3 of Pascal's triangle (the Leibniz rule of :class:`ExcitationManeuver`)."""
-
 
 @runtime_checkable
 class Setpoint(Protocol):
@@ -429,13 +426,18 @@ class ExcitationManeuver:
     def sample(self, t_s: float) -> FlatOutput:
         """Flat output at ``t_s`` (s); Leibniz rule for the windowed sines."""
         t = min(max(float(t_s), 0.0), self.duration_s)
-        h = self._window(t)
-        g = self._sine(self._amplitudes, self._frequencies, t).tolist()
-        # d^n/dt^n (h g) = sum_k C(n, k) h^(k) g^(n-k) per channel, in plain floats (the same products and
-        # left-to-right sums as the former array expression).
+        h0, h1, h2, h3 = self._window(t)
+        g0, g1, g2, g3 = self._sine(self._amplitudes, self._frequencies, t).tolist()
+        # d^n/dt^n (h g) = sum_k C(n, k) h^(k) g^(n-k) per channel, in plain floats: the same products and
+        # left-to-right sums, from 0, as the former array expression (binomial rows 1; 1 1; 1 2 1; 1 3 3 1).
         d = [
-            [sum(c * h[k] * g[n - k][ch] for k, c in enumerate(_BINOMIAL[n])) for ch in range(4)]
-            for n in range(4)
+            [0 + 1 * h0 * a for a in g0],
+            [0 + 1 * h0 * a + 1 * h1 * b for a, b in zip(g1, g0, strict=True)],
+            [0 + 1 * h0 * a + 2 * h1 * b + 1 * h2 * c for a, b, c in zip(g2, g1, g0, strict=True)],
+            [
+                0 + 1 * h0 * a + 3 * h1 * b + 3 * h2 * c + 1 * h3 * e
+                for a, b, c, e in zip(g3, g2, g1, g0, strict=True)
+            ],
         ]
         cx, cy, cz = self.center_W_m.tolist()
         return FlatOutput(
