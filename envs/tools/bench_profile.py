@@ -14,7 +14,9 @@ shared machine, where only ratios are stable). Components are the cumulative tim
   prediction to the newest IMU sample);
 - control: ``SE3Controller._thrusts_f`` (the SE(3) law and mixer behind ``update``, ``thrusts`` and
   ``thrusts_from_estimate``) and the mission's ``TakeoffSequence.update``;
-- health monitor: ``HealthMonitor.observe_imu`` / ``observe_frame``; logging: ``fly._log_tick``;
+- health monitor: ``HealthMonitor.observe_imu`` / ``observe_frame``; logging: ``fly._log_tick`` and
+  ``FlightLog.resolve_deferred`` (which computes the per-tick covariances the log's sigmas read, once per
+  frame: the estimate's covariance is lazy, :mod:`viotb.vio.imu_prediction`);
 - other: the rest of the flight loop (scheduler, truth reads, crash test).
 """
 
@@ -34,7 +36,7 @@ COMPONENTS: tuple[tuple[str, tuple[tuple[str, str], ...], tuple[tuple[str, str],
     ("propagation", (("vio/propagator.py", "propagate"), ("vio/msckf.py", "estimate")), ()),
     ("control", (("controllers/se3.py", "_thrusts_f"), ("run/mission.py", "update")), ()),
     ("health monitor", (("vio/health.py", "observe_imu"), ("vio/health.py", "observe_frame")), ()),
-    ("logging", (("run/fly.py", "_log_tick"),), ()),
+    ("logging", (("run/fly.py", "_log_tick"), ("run/flight_log.py", "resolve_deferred")), ()),
 )
 """(component, entry points added, entry points subtracted), each point ``(file suffix, function)``."""
 
