@@ -147,3 +147,27 @@ def test_lazy_estimate_reads_copies_and_pickles_like_the_record():
         np.testing.assert_array_equal(clone.p_WB, e.p_WB)
     np.testing.assert_array_equal(e.cov_position_W_m2, e.cov[3:6, 3:6])
     _assert_rel(e.cov, cov_ref)
+
+
+def test_flight_log_sigmas_of_lazy_estimates_equal_the_eager_covariance():
+    """``fly._log_tick`` defers a lazy estimate's sigma cells; once filled they are the eager ones."""
+    from types import SimpleNamespace
+
+    from viotb.envs.run.flight_log import FlightLog
+    from viotb.envs.run.fly import _log_tick
+
+    rows = _fly_filter(10_000)[-40:]  # none read yet: every row's sigma waits
+    log = FlightLog()
+    c, s = np.cos(0.3), np.sin(0.3)
+    gauge = (c, s, 0.1, -0.2, 0.05)
+    R_g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    imu = ImuSample(0.0, np.zeros(3), np.array([0.0, 0.0, 9.81]))
+    truth = SimpleNamespace(p_WB=np.zeros(3), R_WB=np.eye(3))
+    for k, (e, _, _) in enumerate(rows):
+        loop = SimpleNamespace(t_s=0.004 * k, last_imu=imu)
+        _log_tick(log, loop, "mission", e, None, gauge, truth, np.zeros(4))
+    assert not any(e.cov_ready for e, _, _ in rows)
+    sigma = log.p_sigma_W  # the read fills them, the covariances of each chain in one batch
+    for got, (_, (_, _, _, cov_ref), _) in zip(sigma, rows, strict=True):
+        want = np.sqrt(np.diag(R_g @ cov_ref[3:6, 3:6] @ R_g.T))
+        _assert_rel(got, want, 1e-9)
