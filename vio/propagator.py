@@ -317,10 +317,13 @@ class Propagator:
         if t_s <= start_t_s or n == 0:
             return start_imu.copy(), (np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM)))
         t, g, a = self.buffer.arrays()
-        if n >= 2 and t[n - 2] == start_t_s and t[n - 1] == t_s:
-            t, g, a = t[n - 2 :], g[n - 2 :], a[n - 2 :]
-        else:
-            t, g, a = select_imu_readings(t, g, a, start_t_s, t_s)
+        if n >= 2 and t[n - 2] == start_t_s and t[n - 1] == t_s:  # one interval (times increase)
+            w = g[n - 2 :] - start_imu.gyro_bias_rad_s
+            f = a[n - 2 :] - start_imu.accel_bias_m_s2
+            dt_s = float(t[n - 1] - t[n - 2])
+            step = integrate_mean(start_imu, w[0], w[1], f[0], f[1], dt_s, self.method)
+            return step.new, step
+        t, g, a = select_imu_readings(t, g, a, start_t_s, t_s)
         dt = np.diff(t)
         k = np.flatnonzero(dt > 0.0)
         if k.size != 1:
