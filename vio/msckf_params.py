@@ -21,9 +21,11 @@ error against the true projection of its first 3-D point, in windows of up to 40
 the samples beyond 5 model sigmas: corners on occluding contours, which are no 3-D point, and tracks that
 slip); the filter's chi-square gate removes those features, so the model is the core's. Checked in the
 filter: with this model the mean NIS per dof of the gated features is 0.67-0.83 (a consistent gated filter
-shows a little under 1), told 1 px 0.005-0.013. Real images were not measured: :class:`MsckfParams` keeps
-1 px there, and :meth:`MsckfParams.with_render_klt_noise` applies this model (``viotb eval`` does on the
-renders).
+shows a little under 1), told 1 px 0.005-0.013. Not a default: real images were not measured, and on the
+renders a wrong calibration in the file (``fail-extrinsic``: 2 deg, ``fail-time-offset``: 10 ms, 10 s)
+makes the filter reject most features and declare divergence within seconds, where told 1 px it flies on
+and the health monitor names the cause (its NIS reference, ``viotb.envs.data.diagnosis``, is for 1 px).
+:meth:`MsckfParams.with_render_klt_noise` applies this model.
 """
 
 RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX = 0.0001
@@ -132,7 +134,7 @@ class MsckfParams:
         """These settings with the KLT noise model measured on this project's renders (white and walk).
 
         :data:`RENDER_KLT_PIXEL_SIGMA_PX` and :data:`RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX`; for the KLT
-        front end on rendered recordings (``viotb eval`` applies it to them by default).
+        front end on rendered recordings with the right calibration (README "Consistency per scenario").
         """
         return replace(
             self,

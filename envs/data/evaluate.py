@@ -67,8 +67,6 @@ def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | No
     # The stereo keyword goes only to a stereo run, so mono runs do not depend on the stereo estimators.
     stereo = {"calib_right": ds.calib_right} if opts.cameras == 2 else {}
     params = opts.msckf
-    if params is None and opts.frontend == "klt" and ds.landmarks_W is not None:
-        params = MsckfParams().with_render_klt_noise()  # KLT on this project's renders: the measured noise
     if opts.calibrate:
         if opts.estimator != "msckf":
             raise ValueError(
