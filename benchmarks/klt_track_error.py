@@ -14,8 +14,10 @@ Model fitted (per image axis, in px): ``e_k = w_k - w_0 + sum_{j=1..k} u_j`` wit
 2. Growth ``var(e_k) = 2 s_w^2 + k s_rw^2`` for ``k >= 1`` (least squares over ``k``).
 
 Robust (MAD) sigmas are used so that a few gross outliers (a track jumping an occluding edge) do not set the
-white-noise level; their share is reported. Also reported: the random-walk step against the image motion
-of the feature per frame (does the slide follow motion or time?).
+white-noise level; their share is reported. ``core`` (:func:`fit_core`) fits the same model over the image
+path in windows of up to 40 frames: the model of the tracks the MSCKF's gate keeps
+(``viotb.vio.msckf_params.RENDER_KLT_PIXEL_SIGMA_PX``). Also reported: the random-walk step against the
+image motion of the feature per frame (does the slide follow motion or time?).
 
 Usage::
 
@@ -254,7 +256,9 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--anchor", action="store_true", help="KltParams.anchor_templates (drift correction)")
     a = ap.parse_args()
-    res = fit_noise(track_errors(a.recording, a.scenario, a.max_frames, anchor=a.anchor)[0])
+    errors = track_errors(a.recording, a.scenario, a.max_frames, anchor=a.anchor)[0]
+    res = fit_noise(errors)
+    res["core"] = fit_core(errors)
     if a.json:
         print(json.dumps(res, indent=1))
         return
