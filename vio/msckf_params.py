@@ -25,7 +25,7 @@ shows a little under 1), told 1 px 0.005-0.013. Not a default: real images were 
 renders a wrong calibration in the file (``fail-extrinsic``: 2 deg, ``fail-time-offset``: 10 ms, 10 s)
 makes the filter reject most features and declare divergence within seconds, where told 1 px it flies on
 and the health monitor names the cause (its NIS reference, ``viotb.envs.data.diagnosis``, is for 1 px).
-:meth:`MsckfParams.with_render_klt_noise` applies this model.
+:meth:`MsckfParams.with_render_klt_noise` applies this model. Other image sizes were not measured.
 """
 
 RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX = 0.0001
@@ -52,7 +52,7 @@ class MsckfParams:
         min_track_length: Fewest observations (views of every camera, on a stereo rig) for a feature to be
             used.
         pixel_sigma_px: Feature measurement noise (px), white part. 1 px: real images, unmeasured (the KLT
-            renders: :data:`RENDER_KLT_PIXEL_SIGMA_PX`, 0.035 px, :meth:`with_render_klt_noise`).
+            renders: :data:`RENDER_KLT_PIXEL_SIGMA_PX`, 0.03 px, :meth:`with_render_klt_noise`).
         chi2_multiplier: Multiplier on the 95 % chi-square gate of each feature.
         integration: IMU integration method.
         use_fej: First-estimates Jacobians (FEJ) in the IMU propagation.
