@@ -79,7 +79,7 @@ class InitParams:
             world frame, so its error is zero by definition, as the yaw's (below); a sigma there is a floor
             that the position covariance can never lose (unobservable) and that the anchored NEES does not
             see. 1e-4 m (was 1e-3): on 20 s KLT ``hover`` recordings, where the errors are millimetres, the
-            1 mm floor made the filter underconfident (MSCKF with the render KLT noise model, seed 0: position
+            1 mm floor made the filter underconfident (MSCKF told 0.03 px and 0.0001 px^2/px, seed 0: position
             NEES 1.43 -> 2.27, 2.29 at 1e-5 m, ATE 4.49 mm in all three); on the moving scenarios it is
             negligible (``viotb regress --full``: every seeded metric within its tolerance).
         sigma_yaw_rad: Reported 1-sigma of the yaw (gauge) (rad). Yaw 0 at the first pose defines the world
