@@ -148,6 +148,30 @@ def test_msckf_klt_nees_monte_carlo(tmp_path, scenario):
     assert 0.75 < np.mean([m["nees_pos_anchored_mean"] for m in runs]) < 5.0
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["figure8", "hover"])
+def test_msckf_klt_render_noise_nees_monte_carlo(tmp_path, scenario):
+    """3 seeds x 20 s rendered, KLT, the noise model measured on the renders: mean position NEES in [1.5, 5].
+
+    ``MsckfParams.with_render_klt_noise`` (README "Consistency per scenario"): measured over seeds 0-2,
+    figure8 4.34 / 2.78 / 2.44 (mean 3.19), hover 1.94 / 1.27 / 1.42 (1.54: at the band's lower edge; seeds
+    0-4 also 1.54). ``circle`` and ``aggressive`` are above the band (a floor-track bias of the KLT, the
+    IMU's scale errors) and are not asserted.
+    """
+    from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
+    from viotb.envs.data.record import record_scenario
+    from viotb.vio.msckf_params import MsckfParams
+
+    runs = []
+    for seed in range(3):
+        rec = tmp_path / f"{scenario}_{seed}"
+        record_scenario(scenario, rec, seed=seed, seconds=20.0)
+        opts = EvalOptions(msckf=MsckfParams().with_render_klt_noise(), monitor=False)
+        runs.append(evaluate_dataset(rec, tmp_path / f"eval_{seed}", opts))
+    assert not any(m["diverged"] for m in runs)
+    assert 1.5 < np.mean([m["nees_pos_mean"] for m in runs]) < 5.0
+
+
 def test_track_path_equals_the_view_by_view_walk_on_random_masks():
     """The vectorized path is the view-by-view walk (previous valid view of the same camera) to round-off."""
     rng = np.random.default_rng(3)

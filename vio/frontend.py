@@ -117,7 +117,9 @@ class KltParams:
             measures it against the exact projection of each track's first 3-D point on rendered
             recordings (320x240): frame to frame, 0.015-0.03 px^2/px on ``figure8`` and ``aggressive``; with
             the affine anchoring below 0.0027 on ``figure8`` (12 s, seed 0). The default, 0.005, is that
-            measurement with a factor 2 of margin.
+            measurement with a factor 2 of margin, for real images (unmeasured). On the renders the tracks
+            walk 0.00003-0.0004 px^2/px (robust and non-robust fits, 20 s recordings):
+            :data:`viotb.vio.msckf_params.RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX`.
         anchor_templates: Refine every frame-to-frame position by aligning the track's first-frame template
             with an affine warp (drift correction, :mod:`viotb.vio.klt_anchor`); a refinement that fails
             takes the template anew. Measured (README "KLT track error"): the error of a track 120-400 px
