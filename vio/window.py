@@ -59,6 +59,7 @@ from viotb.vio.window_factors import (
     retract,
     seen_behind,
 )
+from viotb.vio.window_init import couple_static_tilt_bias
 from viotb.vio.window_map import (
     ImuLink,
     Keyframe,
@@ -169,9 +170,13 @@ class WindowEstimator:
         """Start from an ``InitResult`` (t_s, R_WB, p_WB, v_WB, biases, cov_diag (15,)).
 
         It becomes the first keyframe, with a prior ``diag(1 / cov_diag)`` (which fixes the gauge: position
-        and yaw).
+        and yaw); after a static initialization its tilt and horizontal accelerometer bias are coupled
+        (:mod:`viotb.vio.window_init`, ``WindowParams.static_tilt_bias_sigma_m_s2``).
         """
         t_s, vals, cov = read_init_record(init)
+        sigma_i = self.params.static_tilt_bias_sigma_m_s2
+        if sigma_i is not None and getattr(init, "method", "") == "static":
+            cov = couple_static_tilt_bias(cov, vals.R_WB, sigma_i)
         kf = Keyframe(self._next_key, t_s, vals.copy(), {})
         self._next_key += 1
         self.keyframes, self.links, self.landmarks = [kf], [], {}

@@ -103,6 +103,10 @@ class WindowParams:
             1.5 / 2.05, hover 0.28 / 0.36. It fixes aggressive's overconfidence, but the ATE of the fast
             turns grows by 0.5 cm and each linearization costs about 1.5-2x (the pose blocks of every pair
             of views).
+        static_tilt_bias_sigma_m_s2: After a static initialization, couple the first prior's tilt and
+            horizontal accelerometer bias (the static solve reads the bias as tilt,
+            :mod:`viotb.vio.window_init`) and leave this 1-sigma (m/s^2) of the horizontal bias independent
+            of the tilt; None: the initializer's independent variances (hover position NEES 0.12).
     """
 
     window_size: int = 10
@@ -142,6 +146,7 @@ class WindowParams:
     max_position_sigma_m: float = 100.0
     midpoint_rotation: bool = True
     track_noise: bool = False
+    static_tilt_bias_sigma_m_s2: float | None = 0.01
 
 
 def track_noise_q(p: WindowParams) -> float:
