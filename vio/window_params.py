@@ -32,16 +32,12 @@ class WindowParams:
             next keyframe). 4 steps in all moved the head-walk recording's ATE from 3.3 to 3.8 cm and 3
             aggressive's from 3.4 to 4.1 cm.
         keyframe_frame_iterations: Of those steps, the most the keyframe's own frame takes; a solve that has
-            not converged by then takes the rest on the next frame when that is not a keyframe (from the
-            same values; the oldest keyframe is marginalized after it, at the values the steps reached; a
-            keyframe next instead continues the solve with its own budget, as a solve cut short always did).
-            5 of 5 (no continuation): on 12 s KLT recordings (process CPU time, loaded 2-core machine,
-            interleaved passes) 5 of 6 gave the same p99 within the machine's noise and ATE, but its
-            continuations took 7-10 % of the frames and raised the median frame by up to 1 ms (aggressive
-            7.1 -> 8.1 ms); 4 of 6 made a fifth of the frames continuations on aggressive and
-            head-look-around (median 7.3 -> 15.4 ms on aggressive); 4 of 6 with continuations allowed only
-            while under 40 % of the last 10 frames solved kept the median, but the p99 did not move
-            measurably and the ATE rose (circle 2.54 -> 2.62, figure8 2.34 -> 2.39 cm).
+            not converged by then goes on over the next frames that are not keyframes (``frame_iterations``
+            steps each, from the values, damping and linearization it reached: taken in parts it makes the
+            same steps as in one go, :func:`viotb.vio.window_solver.solve_steps`); its values are the
+            estimate meanwhile, and its outliers and the marginalization of the oldest keyframe wait for its
+            end. A keyframe that comes first ends it where it is (its own solve starts from there).
+        frame_iterations: The most steps of that solve each following frame takes.
         initial_damping: Initial LM damping, relative to the diagonal.
         relative_tolerance: The iterations stop once a kept step lowers the cost by less than this fraction
             of it. 1e-4 rather than 1e-6: on the 12 s KLT recordings (figure-8, aggressive, fast rotation,
@@ -122,6 +118,7 @@ class WindowParams:
     outlier_threshold: float = 8.0
     max_iterations: int = 5
     keyframe_frame_iterations: int = 5
+    frame_iterations: int = 5
     initial_damping: float = 1e-4
     relative_tolerance: float = 1e-4
     min_cost_decrease: float = 0.01
