@@ -247,3 +247,44 @@ def test_split_budget_bounds_every_frame_and_continues_on_the_next():
     continued = [steps for steps, is_kf in per_frame if not is_kf and steps]
     assert continued and max(continued) <= 1  # frame_iterations
     assert ate_split < 0.05 and ate_split < 1.3 * runs[3][1]
+
+
+def test_a_solve_spread_over_frames_ends_where_the_unsplit_solve_ends():
+    """A solve spread over three frames ends where the solve on its keyframe's frame alone ends.
+
+    Keyframes every 3rd frame; 1 step on the keyframe's frame and 2 on each of the next two (5 in all) make
+    the 5-step solve's steps in parts: every solve ends at the same values, bit for bit.
+    """
+    from viotb.envs.run.replay import monitor_run
+    from viotb.envs.scenarios.streams import StreamConfig, synthesize_stream
+    from viotb.vio.keyframing import KeyframeParams
+
+    stream = synthesize_stream(StreamConfig(motion="circle", seconds=3.0, landmark_count=400), 1)
+    every3 = KeyframeParams(every_n_frames=3, min_parallax_px=1e9, min_shared_fraction=0.0)
+    ends = []
+    for kfi, fi in ((5, 5), (1, 2)):
+        prm = WindowParams(
+            frontend="sim",
+            pixel_sigma_px=stream.pixel_sigma_px,
+            keyframing=every3,
+            keyframe_frame_iterations=kfi,
+            frame_iterations=fi,
+        )
+        est = WindowEstimator(stream.calib_given, stream.noise, prm)
+        end: dict[int, np.ndarray] = {}  # newest keyframe's key -> the window's values when its solve ended
+        real = est._finish_solve
+
+        def finish(est=est, real=real, end=end):
+            if est._solve is not None:
+                R, rest = stack_values([kf.x for kf in est.keyframes])
+                end[est.keyframes[-1].key] = np.concatenate([R.reshape(len(R), 9), rest], axis=1)
+            real()
+
+        est._finish_solve = finish
+        monitor_run(est, stream.imu, stream.frames, stream.time_offset_s)
+        ends.append(end)
+    whole, parts = ends
+    common = sorted(whole.keys() & parts.keys())
+    assert len(common) > 10 and len(common) >= len(whole) - 1
+    for key in common:
+        np.testing.assert_array_equal(parts[key], whole[key])

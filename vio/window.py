@@ -354,7 +354,7 @@ class WindowEstimator:
         # 2. New landmarks, 3. optimize (the rest of the step budget on the next frames), 4. marginalize.
         self._triangulate_new()
         self._start_solve()
-        self._solve_steps(min(p.keyframe_frame_iterations, p.max_iterations))
+        self._solve_steps(min(p.keyframe_frame_iterations, p.max_iterations), True)
         t_keep = self.keyframes[0].t_s - 1.0
         self.buffer.clean_older_than(t_keep)
 
@@ -371,7 +371,7 @@ class WindowEstimator:
     def _continue_solve(self) -> None:
         """Take up to ``frame_iterations`` more steps of the keyframe's solve on this (non-keyframe) frame."""
         try:
-            self._solve_steps(self.params.frame_iterations)
+            self._solve_steps(self.params.frame_iterations, False)
         except (np.linalg.LinAlgError, FloatingPointError) as exc:
             self._diverged_reason = f"numerical failure in the optimization: {exc}"
             self._solve = None
@@ -395,13 +395,16 @@ class WindowEstimator:
         st = start_solve([kf.x for kf in self.keyframes], pts, f, self._weights, p.initial_damping, fej)
         self._solve = (st, lm_ids, (f.obs, f.obs_right))
 
-    def _solve_steps(self, steps: int) -> None:
-        """Up to ``steps`` more trial steps of the solve; it finishes at its budget or when it converged."""
+    def _solve_steps(self, steps: int, on_keyframe: bool) -> None:
+        """Up to ``steps`` more trial steps of the solve; it finishes at its budget or when it converged.
+
+        A split solve (``keyframe_frame_iterations < max_iterations``) finishes on a later frame, never on
+        its keyframe's: the keyframe's frame then reports the newest keyframe's covariance of the system.
+        """
         t0 = time.perf_counter()
         p = self.params
         assert self._solve is not None
         st, lm_ids, _ = self._solve
-        first = st.iterations == 0
         self.solve_iterations.append(
             solve_steps(
                 st, min(steps, p.max_iterations - st.iterations), p.relative_tolerance, p.min_cost_decrease
@@ -411,9 +414,10 @@ class WindowEstimator:
             kf.x = x
         for j, fid in enumerate(lm_ids):
             self.landmarks[fid] = st.pts[j]
-        if st.converged or st.iterations >= p.max_iterations:
+        done = st.converged or st.iterations >= p.max_iterations
+        if done and (not on_keyframe or p.keyframe_frame_iterations >= p.max_iterations):
             self._finish_solve()
-        elif first:  # the estimate meanwhile: the newest keyframe's covariance at the values reached
+        elif on_keyframe:  # the estimate meanwhile: the newest keyframe's covariance at the values reached
             self._cov_newest = newest_keyframe_covariance(st.system)
         self.solve_times_s.append(time.perf_counter() - t0)
 
