@@ -207,6 +207,7 @@ def test_marginalization_from_the_solve_equals_a_new_linearization(track_noise):
     if track_noise:
         est._weights = dataclasses.replace(est._weights, track_q=0.05, focal_px=est._focal_px)
     monitor_run(est, stream.imu, stream.frames, stream.time_offset_s)
+    est._finish_solve()  # the run's last solve, if its frames did not finish it
     est._start_solve()  # a solve at the window's values, as before a marginalization
     est._solve_steps(2, True)
     est._finish_solve()  # where its 2 steps reached (a full window: nothing is marginalized yet)

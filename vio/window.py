@@ -332,7 +332,10 @@ class WindowEstimator:
         p = self.params
         last = self.keyframes[-1]
         t_s = tracks.t_imu_s
-        self._finish_solve()  # a solve of the previous keyframe that the frames since did not finish
+        # An unfinished solve ends here; this one then takes its whole budget now (keyframes in a row).
+        st = None if self._solve is None else self._solve[0]
+        cut = st is not None and not st.converged and st.iterations < p.max_iterations
+        self._finish_solve()
         self._n_bad = 0
         # 1. Preintegrate and predict the new keyframe (Forster eq. 33).
         readings = self._readings(last.t_s, t_s)
@@ -354,9 +357,9 @@ class WindowEstimator:
         # 2. New landmarks, 3. optimize (the rest of the step budget on the next frames), 4. marginalize.
         self._triangulate_new()
         self._start_solve()
-        self._solve_steps(min(p.keyframe_frame_iterations, p.max_iterations), True)
-        t_keep = self.keyframes[0].t_s - 1.0
-        self.buffer.clean_older_than(t_keep)
+        steps = p.max_iterations if cut else min(p.keyframe_frame_iterations, p.max_iterations)
+        self._solve_steps(steps, True)
+        self.buffer.clean_older_than(self.keyframes[0].t_s - 1.0)
 
     def _triangulate_new(self) -> None:
         p = self.params
