@@ -332,7 +332,7 @@ class WindowEstimator:
         p = self.params
         last = self.keyframes[-1]
         t_s = tracks.t_imu_s
-        # An unfinished solve ends here; this one then takes its whole budget now (keyframes in a row).
+        # An unfinished solve ends here; this one takes a next frame's steps now too (keyframes in a row).
         st = None if self._solve is None else self._solve[0]
         cut = st is not None and not st.converged and st.iterations < p.max_iterations
         self._finish_solve()
@@ -357,7 +357,7 @@ class WindowEstimator:
         # 2. New landmarks, 3. optimize (the rest of the step budget on the next frames), 4. marginalize.
         self._triangulate_new()
         self._start_solve()
-        steps = p.max_iterations if cut else min(p.keyframe_frame_iterations, p.max_iterations)
+        steps = min(p.keyframe_frame_iterations + (p.frame_iterations if cut else 0), p.max_iterations)
         self._solve_steps(steps, True)
         self.buffer.clean_older_than(self.keyframes[0].t_s - 1.0)
 
