@@ -36,14 +36,16 @@ class WindowParams:
             steps each, from the values, damping and linearization it reached: taken in parts it makes the
             same steps as in one go, :func:`viotb.vio.window_solver.solve_steps`); its values are the
             estimate meanwhile, and its outliers and the marginalization of the oldest keyframe wait for its
-            end. A keyframe that comes first ends it where it is (its own solve starts from there). 1 (with
-            ``frame_iterations`` 2: the 5 steps end before the next keyframe, at least 3 frames on): on the
-            12 s KLT recordings, seeds 0 and 1 (process CPU time of ``feed_camera``, loaded 2-core machine,
-            interleaved runs; README "A solve spread over frames") the p99 frame fell 25-40 % (39-53 ->
-            28-39 ms) and the median rose 5-7 ms (the frames after a keyframe take its steps); ATE within
-            +6 % (aggressive seed 1 1.98 -> 2.09 cm), position NEES within 7 %. 3 steps and 1 per frame:
-            p99 only 5-30 % lower; 2 and 1: head-look-around seed 1 3.17 -> 5.26 cm (its solves were cut by
-            the next keyframe); 1 and 1: figure8 2.21 -> 2.86 cm, aggressive 1.35 -> 1.86 cm.
+            end. A keyframe that comes first ends it where it is and takes ``keyframe_frame_iterations +
+            frame_iterations`` steps on its own frame (keyframes in a row would leave each solve one step).
+            1 (with ``frame_iterations`` 2: the 5 steps end before the next keyframe, at least 3 frames on):
+            on the 12 s KLT recordings, seeds 0 and 1 (process CPU time of ``feed_camera``, loaded 2-core
+            machine, runs back to back; README "A solve spread over frames"), against 5 steps on the
+            keyframe's frame, the p99 frame fell 2-48 % (41-53 -> 25-43 ms) and the median rose 2-8 ms (the
+            frames after a keyframe take its steps); ATE within +4 % (head-look-around seed 1 3.17 -> 3.30
+            cm), position NEES within 5 %. 3 steps and 1 per frame: p99 only 3-30 % lower; 2 and 1:
+            head-look-around seed 1 3.17 -> 5.26 cm (solves cut by the next keyframe); 1 and 1: figure8
+            2.21 -> 2.86 cm, aggressive 1.35 -> 1.86 cm.
         frame_iterations: The most steps of that solve each following frame takes (above).
         initial_damping: Initial LM damping, relative to the diagonal.
         relative_tolerance: The iterations stop once a kept step lowers the cost by less than this fraction
