@@ -265,12 +265,22 @@ def test_initialize_reports_the_initial_covariance_and_state():
         "static",
         cov_diag,
     )
-    est = WindowEstimator(_calib(), ImuNoise(), WindowParams(frontend="sim"))
+    uncoupled = WindowParams(frontend="sim", static_tilt_bias_sigma_m_s2=None)
+    est = WindowEstimator(_calib(), ImuNoise(), uncoupled)
     est.initialize(init)
     e = est.estimate()
     assert e is not None and e.t_s == 1.0
     np.testing.assert_array_equal(e.p_WB, init.p_WB)
     np.testing.assert_allclose(e.cov, np.diag(cov_diag), rtol=1e-12)
+    # By default a static start couples the tilt and the horizontal accelerometer bias; the rest is as given.
+    coupled = WindowEstimator(_calib(), ImuNoise(), WindowParams(frontend="sim"))
+    coupled.initialize(init)
+    c = coupled.estimate().cov
+    np.testing.assert_allclose(c[:12, :12], np.diag(cov_diag[:12]), rtol=1e-12)
+    assert np.abs(c[12:15, 0:3]).max() > 1e-6
+    dynamic = WindowEstimator(_calib(), ImuNoise(), WindowParams(frontend="sim"))
+    dynamic.initialize(replace(init, method="dynamic"))
+    np.testing.assert_allclose(dynamic.estimate().cov, np.diag(cov_diag), rtol=1e-12)
     with pytest.raises(ValueError, match="cov_diag"):
         est.initialize(
             InitResult(

@@ -32,7 +32,6 @@ naming the value. Divergence (non-finite state, cost blow-up, singular system) i
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
@@ -59,17 +58,20 @@ from viotb.vio.window_factors import (
     retract,
     seen_behind,
 )
-from viotb.vio.window_map import (
-    ImuLink,
-    Keyframe,
-    drop_landmark,
-    observations,
-    triangulate_new,
-)
-from viotb.vio.window_marginalize import marginalize_oldest, window_factors
+from viotb.vio.window_init import couple_static_tilt_bias
+from viotb.vio.window_map import ImuLink, Keyframe, drop_landmark, triangulate_new
+from viotb.vio.window_marginalize import marginalize_oldest, solve_factors
 from viotb.vio.window_nis import InnovationTest, WindowMarginals, innovation_test
 from viotb.vio.window_params import WindowParams, track_noise_q
-from viotb.vio.window_solver import Factors, FactorWeights, LinearSystem, levenberg_marquardt, stereo_weights
+from viotb.vio.window_solver import (
+    FactorWeights,
+    LinearSystem,
+    SolveState,
+    newest_keyframe_covariance,
+    solve_steps,
+    start_solve,
+    stereo_weights,
+)
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
 __all__ = [
@@ -150,8 +152,7 @@ class WindowEstimator:
         self._last_cost_per_res = 0.0
         self._marginals: WindowMarginals | None = None
         self._solved: tuple[LinearSystem, list[int]] | None = None
-        self._pending_steps = 0
-        self._pending_damping = self.params.initial_damping
+        self._solve: tuple[SolveState, list[int], tuple] | None = None  # a solve going on over frames
         self._innovation = InnovationTest()
         self._health = HealthStatus(t_s=0.0, initialized=False)
         self._diverged_reason = ""
@@ -169,16 +170,20 @@ class WindowEstimator:
         """Start from an ``InitResult`` (t_s, R_WB, p_WB, v_WB, biases, cov_diag (15,)).
 
         It becomes the first keyframe, with a prior ``diag(1 / cov_diag)`` (which fixes the gauge: position
-        and yaw).
+        and yaw); after a static initialization its tilt and horizontal accelerometer bias are coupled
+        (:mod:`viotb.vio.window_init`, ``WindowParams.static_tilt_bias_sigma_m_s2``).
         """
         t_s, vals, cov = read_init_record(init)
+        sigma_i = self.params.static_tilt_bias_sigma_m_s2
+        if sigma_i is not None and getattr(init, "method", "") == "static":
+            cov = couple_static_tilt_bias(cov, vals.R_WB, sigma_i)
         kf = Keyframe(self._next_key, t_s, vals.copy(), {})
         self._next_key += 1
         self.keyframes, self.links, self.landmarks = [kf], [], {}
         self.prior = LinearPrior(np.linalg.inv(cov), np.zeros(NX), [kf.key], [vals.copy()])
         self._cov_newest = cov
         self._marginals = None
-        self._solved, self._pending_steps = None, 0
+        self._solved, self._solve = None, None
         self.keyframe_rule.forget_reference()
         self._version += 1
         self._health = HealthStatus(t_s=t_s, initialized=True)
@@ -205,17 +210,17 @@ class WindowEstimator:
         still = self._update_stillness(tracks)
         if self._diverged_reason or not self._is_keyframe(tracks):
             self.keyframe_rule.skip()
-            if self._pending_steps and not self._diverged_reason:
+            if self._solve is not None and not self._diverged_reason:
                 self._continue_solve()
             self._health = self._make_health(frame.t_s, tracks)
             return
         self.keyframe_rule.accept(tracks)
-        self._pending_steps, self.keyframes_added = 0, self.keyframes_added + 1
+        self.keyframes_added += 1
         try:
             self._add_keyframe(tracks, still)
         except (np.linalg.LinAlgError, FloatingPointError) as exc:
             self._diverged_reason = f"numerical failure in the optimization: {exc}"
-        self._check_divergence()
+            self._solve = None
         self._version += 1
         self._health = self._make_health(frame.t_s, tracks, self._innovation)
 
@@ -327,8 +332,11 @@ class WindowEstimator:
         p = self.params
         last = self.keyframes[-1]
         t_s = tracks.t_imu_s
+        # An unfinished solve ends here; this one takes a next frame's steps now too (keyframes in a row).
+        st = None if self._solve is None else self._solve[0]
+        cut = st is not None and not st.converged and st.iterations < p.max_iterations
+        self._finish_solve()
         self._n_bad = 0
-        self._marginalize_full()  # a solve cut short on the previous keyframe that the frames did not finish
         # 1. Preintegrate and predict the new keyframe (Forster eq. 33).
         readings = self._readings(last.t_s, t_s)
         pre = preintegrate(*readings, last.x, self.noise, self.params.midpoint_rotation)
@@ -346,14 +354,12 @@ class WindowEstimator:
         self.keyframes.append(Keyframe(self._next_key, t_s, x, obs, still, obs1))
         self._next_key += 1
         self.links.append(ImuLink(pre, readings))
-        # 2. New landmarks, 3. optimize (the rest of the step budget on the next frame), 4. marginalize.
+        # 2. New landmarks, 3. optimize (the rest of the step budget on the next frames), 4. marginalize.
         self._triangulate_new()
-        steps = min(p.keyframe_frame_iterations, p.max_iterations)
-        self._optimize(steps, p.initial_damping, p.max_iterations - steps)
-        if not self._pending_steps:
-            self._marginalize_full()
-        t_keep = self.keyframes[0].t_s - 1.0
-        self.buffer.clean_older_than(t_keep)
+        self._start_solve()
+        steps = min(p.keyframe_frame_iterations + (p.frame_iterations if cut else 0), p.max_iterations)
+        self._solve_steps(steps, True)
+        self.buffer.clean_older_than(self.keyframes[0].t_s - 1.0)
 
     def _triangulate_new(self) -> None:
         p = self.params
@@ -366,49 +372,66 @@ class WindowEstimator:
         self._n_bad += triangulate_new(self.keyframes, self.landmarks, limits, cams, *tri)
 
     def _continue_solve(self) -> None:
-        """Spend the rest of the last keyframe's step budget on this (non-keyframe) frame."""
-        steps, self._pending_steps = self._pending_steps, 0
+        """Take up to ``frame_iterations`` more steps of the keyframe's solve on this (non-keyframe) frame."""
         try:
-            self._optimize(steps, self._pending_damping, 0)
-            self._marginalize_full()
+            self._solve_steps(self.params.frame_iterations, False)
         except (np.linalg.LinAlgError, FloatingPointError) as exc:
             self._diverged_reason = f"numerical failure in the optimization: {exc}"
+            self._solve = None
         self._version += 1
 
-    def _optimize(self, steps: int, damping: float, carry: int) -> None:
-        """Levenberg-Marquardt over the window with landmarks eliminated by the Schur complement.
+    def _start_solve(self) -> None:
+        """Levenberg-Marquardt over the window, landmarks eliminated by the Schur complement: its factors.
 
-        Args:
-            steps: Most trial steps now.
-            damping: Initial damping.
-            carry: Steps the next frame may spend when this solve stops unconverged (``_continue_solve``).
+        The solve (:func:`viotb.vio.window_solver.start_solve`) takes its ``max_iterations`` steps over the
+        keyframe's frame (``keyframe_frame_iterations``) and the next frames (``frame_iterations`` each); the
+        values it reached are the estimate meanwhile. Taken in parts it makes the same steps as in one go.
         """
-        t0 = time.perf_counter()
         p = self.params
         # 0. Re-integrate preintegrations whose bias moved far from its linearization point (lesson ch. 5).
         tol = (p.repropagate_gyro_bias_rad_s, p.repropagate_accel_bias_m_s2)
         repropagate(
             self.links, [kf.x for kf in self.keyframes], self.noise, *tol, self.params.midpoint_rotation
         )
-        lm_ids = sorted(self.landmarks)
-        pts = np.array([self.landmarks[f] for f in lm_ids]).reshape(-1, 3)
-        obs = observations(self.keyframes, lm_ids)
-        obs1 = observations(self.keyframes, lm_ids, cam=1)
-        xs = [kf.x for kf in self.keyframes]
-        still = [k for k, kf in enumerate(self.keyframes) if kf.still]
-        no_motion = [k for k in still if k >= 1 and self.keyframes[k - 1].still]
-        factors = self._factors(range(len(self.links)), still, no_motion, obs, obs1)
-        lm = (steps, damping, p.relative_tolerance, p.min_cost_decrease)
+        lm_ids, pts, f = solve_factors(self.keyframes, self.links, self.prior, self.landmarks)
         fej = [kf.x_fej for kf in self.keyframes] if p.first_estimate_jacobians else None
-        sol = levenberg_marquardt(xs, pts, factors, self._weights, *lm, fej)
-        xs, pts, sys = sol.xs, sol.pts, sol.system
-        self.solve_iterations.append(sol.iterations)
-        self._pending_steps = 0 if sol.converged else carry
-        self._pending_damping = sol.damping
-        for kf, x in zip(self.keyframes, xs, strict=True):
+        st = start_solve([kf.x for kf in self.keyframes], pts, f, self._weights, p.initial_damping, fej)
+        self._solve = (st, lm_ids, (f.obs, f.obs_right))
+
+    def _solve_steps(self, steps: int, on_keyframe: bool) -> None:
+        """Up to ``steps`` more trial steps of the solve; it finishes at its budget or when it converged.
+
+        A split solve (``keyframe_frame_iterations < max_iterations``) finishes on a later frame, never on
+        its keyframe's: the keyframe's frame then reports the newest keyframe's covariance of the system.
+        """
+        t0 = time.perf_counter()
+        p = self.params
+        assert self._solve is not None
+        st, lm_ids, _ = self._solve
+        self.solve_iterations.append(
+            solve_steps(
+                st, min(steps, p.max_iterations - st.iterations), p.relative_tolerance, p.min_cost_decrease
+            )
+        )
+        for kf, x in zip(self.keyframes, st.xs, strict=True):
             kf.x = x
         for j, fid in enumerate(lm_ids):
-            self.landmarks[fid] = pts[j]
+            self.landmarks[fid] = st.pts[j]
+        done = st.converged or st.iterations >= p.max_iterations
+        if done and (not on_keyframe or p.keyframe_frame_iterations >= p.max_iterations):
+            self._finish_solve()
+        elif on_keyframe:  # the estimate meanwhile: the newest keyframe's covariance at the values reached
+            self._cov_newest = newest_keyframe_covariance(st.system)
+        self.solve_times_s.append(time.perf_counter() - t0)
+
+    def _finish_solve(self) -> None:
+        """End the solve where its steps reached: covariances, outliers, marginalization, divergence."""
+        if self._solve is None:
+            return
+        p = self.params
+        st, lm_ids, (obs, obs1) = self._solve
+        self._solve = None
+        xs, pts, sys = st.xs, st.pts, st.system
         # 5. Covariances: the newest keyframe's (the inverse of its marginal information) and those the next
         #    keyframe's innovation test needs (:mod:`viotb.vio.window_nis`).
         self._marginals = WindowMarginals.from_system(sys, lm_ids)
@@ -421,27 +444,22 @@ class WindowEstimator:
             cams = [(obs, self._R_BC, self._p_BC)]
             if self.calib_right is not None:
                 cams.append((obs1, self.calib_right.R_BC, np.asarray(self.calib_right.p_BC, dtype=float)))
-            behind = seen_behind(xs, pts, cams, p.triangulation.min_depth_m)
-            bad = (sys.max_err > p.outlier_threshold) | behind
+            bad = (sys.max_err > p.outlier_threshold) | seen_behind(
+                xs, pts, cams, p.triangulation.min_depth_m
+            )
             for j in np.nonzero(bad)[0]:
                 drop_landmark(self.keyframes, self.landmarks, lm_ids[j])
-            self._n_bad += int(np.sum(bad))
-            self._used = len(lm_ids) - int(np.sum(bad))
-        self.solve_times_s.append(time.perf_counter() - t0)
-
-    def _factors(
-        self, links: Iterable[int], still: list[int], no_motion: list[int], obs: tuple, obs1: tuple
-    ) -> Factors:
-        """The factors: IMU ``links``, prior, ``still``/``no_motion`` keyframes, ``obs`` (cam0), ``obs1``."""
-        return window_factors(self.keyframes, self.links, self.prior, links, still, no_motion, obs, obs1)
+            self._n_bad, self._used = self._n_bad + int(np.sum(bad)), len(lm_ids) - int(np.sum(bad))
+        self._marginalize_full()
+        self._check_divergence()
 
     def _marginalize_full(self) -> None:
-        """Marginalize the oldest keyframe when the window holds more than ``window_size``."""
-        if len(self.keyframes) > self.params.window_size:
-            self._marginalize_oldest()
+        """Fold the oldest keyframe and the landmarks it saw into a new linear prior (Schur complement).
 
-    def _marginalize_oldest(self) -> None:
-        """Fold the oldest keyframe and the landmarks it saw into a new linear prior (Schur complement)."""
+        Only when the window holds more than ``window_size`` keyframes.
+        """
+        if len(self.keyframes) <= self.params.window_size:
+            return
         self.prior, self.keyframes, self.links = marginalize_oldest(
             self.keyframes,
             self.links,

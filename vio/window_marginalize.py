@@ -67,6 +67,27 @@ def window_factors(
     )
 
 
+def solve_factors(
+    keyframes: list[Keyframe],
+    links: list[ImuLink],
+    prior: LinearPrior | None,
+    landmarks: dict[int, np.ndarray],
+) -> tuple[list[int], np.ndarray, Factors]:
+    """Every factor of the window's solve: ``(landmark ids (L,), their points in W (L, 3) m, factors)``.
+
+    The IMU links, the prior, the zero-velocity factors of still keyframes, the no-motion factors between
+    consecutive still ones and the observations of every landmark (ids in increasing order) in each camera.
+    """
+    lm_ids = sorted(landmarks)
+    pts = np.array([landmarks[f] for f in lm_ids]).reshape(-1, 3)
+    obs = observations(keyframes, lm_ids)
+    obs1 = observations(keyframes, lm_ids, cam=1)
+    still = [k for k, kf in enumerate(keyframes) if kf.still]
+    no_motion = [k for k in still if k >= 1 and keyframes[k - 1].still]
+    f = window_factors(keyframes, links, prior, range(len(links)), still, no_motion, obs, obs1)
+    return lm_ids, pts, f
+
+
 def landmark_subsystem(solved: LinearSystem, rows: np.ndarray, base: LinearSystem) -> LinearSystem:
     """``base`` plus the reprojection factors of landmarks ``rows`` of ``solved`` (no new linearization).
 

@@ -32,16 +32,21 @@ class WindowParams:
             next keyframe). 4 steps in all moved the head-walk recording's ATE from 3.3 to 3.8 cm and 3
             aggressive's from 3.4 to 4.1 cm.
         keyframe_frame_iterations: Of those steps, the most the keyframe's own frame takes; a solve that has
-            not converged by then takes the rest on the next frame when that is not a keyframe (from the
-            same values; the oldest keyframe is marginalized after it, at the values the steps reached; a
-            keyframe next instead continues the solve with its own budget, as a solve cut short always did).
-            5 of 5 (no continuation): on 12 s KLT recordings (process CPU time, loaded 2-core machine,
-            interleaved passes) 5 of 6 gave the same p99 within the machine's noise and ATE, but its
-            continuations took 7-10 % of the frames and raised the median frame by up to 1 ms (aggressive
-            7.1 -> 8.1 ms); 4 of 6 made a fifth of the frames continuations on aggressive and
-            head-look-around (median 7.3 -> 15.4 ms on aggressive); 4 of 6 with continuations allowed only
-            while under 40 % of the last 10 frames solved kept the median, but the p99 did not move
-            measurably and the ATE rose (circle 2.54 -> 2.62, figure8 2.34 -> 2.39 cm).
+            not converged by then goes on over the next frames that are not keyframes (``frame_iterations``
+            steps each, from the values, damping and linearization it reached: taken in parts it makes the
+            same steps as in one go, :func:`viotb.vio.window_solver.solve_steps`); its values are the
+            estimate meanwhile, and its outliers and the marginalization of the oldest keyframe wait for its
+            end. A keyframe that comes first ends it where it is and takes ``keyframe_frame_iterations +
+            frame_iterations`` steps on its own frame (keyframes in a row would leave each solve one step).
+            1 (with ``frame_iterations`` 2: the 5 steps end before the next keyframe, at least 3 frames on):
+            on the 12 s KLT recordings, seeds 0 and 1 (process CPU time of ``feed_camera``, loaded 2-core
+            machine, runs back to back; README "A solve spread over frames"), against 5 steps on the
+            keyframe's frame, the p99 frame fell 2-48 % (41-53 -> 25-43 ms) and the median rose 2-8 ms (the
+            frames after a keyframe take its steps); ATE within +4 % (head-look-around seed 1 3.17 -> 3.30
+            cm), position NEES within 5 %. 3 steps and 1 per frame: p99 only 3-30 % lower; 2 and 1:
+            head-look-around seed 1 3.17 -> 5.26 cm (solves cut by the next keyframe); 1 and 1: figure8
+            2.21 -> 2.86 cm, aggressive 1.35 -> 1.86 cm.
+        frame_iterations: The most steps of that solve each following frame takes (above).
         initial_damping: Initial LM damping, relative to the diagonal.
         relative_tolerance: The iterations stop once a kept step lowers the cost by less than this fraction
             of it. 1e-4 rather than 1e-6: on the 12 s KLT recordings (figure-8, aggressive, fast rotation,
@@ -103,6 +108,10 @@ class WindowParams:
             1.5 / 2.05, hover 0.28 / 0.36. It fixes aggressive's overconfidence, but the ATE of the fast
             turns grows by 0.5 cm and each linearization costs about 1.5-2x (the pose blocks of every pair
             of views).
+        static_tilt_bias_sigma_m_s2: After a static initialization, couple the first prior's tilt and
+            horizontal accelerometer bias (the static solve reads the bias as tilt,
+            :mod:`viotb.vio.window_init`) and leave this 1-sigma (m/s^2) of the horizontal bias independent
+            of the tilt; None: the initializer's independent variances (hover position NEES 0.12).
     """
 
     window_size: int = 10
@@ -117,7 +126,8 @@ class WindowParams:
     huber_threshold: float = 3.0
     outlier_threshold: float = 8.0
     max_iterations: int = 5
-    keyframe_frame_iterations: int = 5
+    keyframe_frame_iterations: int = 1
+    frame_iterations: int = 2
     initial_damping: float = 1e-4
     relative_tolerance: float = 1e-4
     min_cost_decrease: float = 0.01
@@ -142,6 +152,7 @@ class WindowParams:
     max_position_sigma_m: float = 100.0
     midpoint_rotation: bool = True
     track_noise: bool = False
+    static_tilt_bias_sigma_m_s2: float | None = 0.01
 
 
 def track_noise_q(p: WindowParams) -> float:

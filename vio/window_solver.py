@@ -349,6 +349,88 @@ def predicted_decrease(sys: LinearSystem, lam: float, dx: np.ndarray, dl: np.nda
     return 0.5 * (lam * damped - float(sys.g @ dx) - float(np.sum(sys.g_l * dl)))
 
 
+@dataclass
+class SolveState:
+    """A Levenberg-Marquardt solve that can go on later (:func:`start_solve`, :func:`solve_steps`).
+
+    Attributes:
+        xs: Current keyframe values (N).
+        pts: Current landmarks in W (m), shape (L, 3).
+        system: The system linearized at ``(xs, pts)``.
+        damping: The damping of the next step.
+        iterations: Trial steps taken so far.
+        converged: A stopping rule fired (small predicted or actual decrease).
+        f: The factors.
+        w8: Their noise models and the extrinsics.
+        prep: ``prepare(f, w8, ...)``.
+        fej: First-estimate values per keyframe (:func:`levenberg_marquardt`), or None.
+    """
+
+    xs: list[ImuValues]
+    pts: np.ndarray
+    system: LinearSystem
+    damping: float
+    iterations: int
+    converged: bool
+    f: Factors
+    w8: FactorWeights
+    prep: PreparedFactors
+    fej: list[ImuValues | None] | None
+
+
+def _jacobian_values(xs_at: list[ImuValues], fej: list[ImuValues | None] | None) -> list[ImuValues] | None:
+    """The values of the Jacobians at ``xs_at``: the first estimates where there are (None: no FEJ)."""
+    return None if fej is None else [x if x_fe is None else x_fe for x, x_fe in zip(xs_at, fej, strict=True)]
+
+
+def start_solve(
+    xs: list[ImuValues],
+    pts: np.ndarray,
+    f: Factors,
+    w8: FactorWeights,
+    initial_damping: float,
+    fej: list[ImuValues | None] | None = None,
+) -> SolveState:
+    """Linearize at the initial values: a solve of no steps yet (:func:`solve_steps` takes them)."""
+    prep = prepare(f, w8, len(xs), len(pts))
+    sys = linearize(xs, pts, f, w8, prep, _jacobian_values(xs, fej))
+    return SolveState(xs, pts, sys, initial_damping, 0, False, f, w8, prep, fej)
+
+
+def solve_steps(
+    st: SolveState, max_steps: int, relative_tolerance: float = 1e-6, min_decrease: float = 0.0
+) -> int:
+    """Take at most ``max_steps`` more trial steps of ``st`` (in place); return the steps taken.
+
+    One solve taken in several calls makes the same steps, in the same order and from the same values and
+    damping, as one call with their sum: the rules are :func:`levenberg_marquardt`'s.
+    """
+    pidx = pose_index(len(st.xs))
+    taken = 0
+    while taken < max_steps and not st.converged:
+        sys, lam = st.system, st.damping
+        S, g_red, H_ll_inv = schur_reduce(sys, lam)
+        dx = np.linalg.solve(S, -g_red)
+        rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
+        dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
+        if predicted_decrease(sys, lam, dx, dl) < min_decrease:
+            st.converged = True
+            break
+        xs_new = retract_batch(st.xs, dx)
+        pts_new = st.pts + dl
+        sys_new = linearize(xs_new, pts_new, st.f, st.w8, st.prep, _jacobian_values(xs_new, st.fej))
+        taken += 1
+        st.iterations += 1
+        if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
+            small = sys.cost - sys_new.cost < relative_tolerance * sys.cost
+            st.xs, st.pts, st.system = xs_new, pts_new, sys_new
+            st.damping = max(lam / 10.0, 1e-8)
+            st.converged = bool(small)
+        else:
+            st.damping = lam * 10.0
+    return taken
+
+
 def levenberg_marquardt(
     xs: list[ImuValues],
     pts: np.ndarray,
@@ -368,7 +450,8 @@ def levenberg_marquardt(
     a solve cut short continues from its values at the next keyframe (they are the next solve's start).
     The iterations stop early when the model's predicted decrease of the next step is below
     ``min_decrease`` (before linearizing there: the step is not taken), or when a kept step lowered the cost
-    by less than ``relative_tolerance`` of it.
+    by less than ``relative_tolerance`` of it. :func:`start_solve` and :func:`solve_steps` are the same solve
+    taken in parts.
 
     Args:
         xs: Initial keyframe values (N).
@@ -388,37 +471,9 @@ def levenberg_marquardt(
     """
     if max_iterations < 0:
         raise ValueError(f"levenberg_marquardt: max_iterations must be >= 0, got {max_iterations}")
-    prep = prepare(f, w8, len(xs), len(pts))
-
-    def lin(xs_at: list[ImuValues]) -> list[ImuValues] | None:
-        return (
-            None if fej is None else [x if x_fe is None else x_fe for x, x_fe in zip(xs_at, fej, strict=True)]
-        )
-
-    sys = linearize(xs, pts, f, w8, prep, lin(xs))
-    lam = initial_damping
-    pidx = pose_index(len(xs))
-    n_it = 0
-    while n_it < max_iterations:
-        S, g_red, H_ll_inv = schur_reduce(sys, lam)
-        dx = np.linalg.solve(S, -g_red)
-        rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
-        dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
-        if predicted_decrease(sys, lam, dx, dl) < min_decrease:
-            return SolveResult(xs, pts, sys, n_it, True, lam)
-        xs_new = retract_batch(xs, dx)
-        pts_new = pts + dl
-        sys_new = linearize(xs_new, pts_new, f, w8, prep, lin(xs_new))
-        n_it += 1
-        if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
-            small = sys.cost - sys_new.cost < relative_tolerance * sys.cost
-            xs, pts, sys = xs_new, pts_new, sys_new
-            lam = max(lam / 10.0, 1e-8)
-            if small:
-                return SolveResult(xs, pts, sys, n_it, True, lam)
-        else:
-            lam *= 10.0
-    return SolveResult(xs, pts, sys, n_it, False, lam)
+    st = start_solve(xs, pts, f, w8, initial_damping, fej)
+    solve_steps(st, max_iterations, relative_tolerance, min_decrease)
+    return SolveResult(st.xs, st.pts, st.system, st.iterations, st.converged, st.damping)
 
 
 def newest_keyframe_covariance(sys: LinearSystem) -> np.ndarray:
