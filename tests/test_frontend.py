@@ -143,7 +143,7 @@ def test_klt_backward_pass_on_kept_points_equals_the_full_forward_backward_check
     good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_error_px)
     good &= cam.in_image(p1.reshape(-1, 2).astype(float), p.border_px)
     assert 0 < good.sum() < len(prev)  # the check rejects some points and keeps most
-    pts, ids, xy = trk._track(img1)
+    pts, ids, xy, _ = trk._track(img1, None)
     kept = np.isin(ids, trk._prev_ids[good])
     assert kept.all()  # RANSAC only removes more
     np.testing.assert_array_equal(pts, p1.reshape(-1, 2)[good][np.isin(trk._prev_ids[good], ids)])

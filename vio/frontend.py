@@ -225,16 +225,25 @@ class KltTracker:
         self._prev_xy = np.zeros((0, 2))
         self._anchors = self._new_anchors()
 
-    def _track(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """KLT from the previous frame with forward-backward check and RANSAC.
+    def _track(
+        self, img: np.ndarray, img_f32: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """KLT from the previous frame with forward-backward check, template anchoring and RANSAC.
+
+        Args:
+            img: The new image (uint8).
+            img_f32: The same image as float32, for the anchoring (None without anchors).
 
         Returns:
-            ``(pts (M, 2) float32 px, ids (M,), xy (M, 2) undistorted normalized)``. Undistortion is per
-            point, so the previous frame's coordinates are reused and each point is undistorted once.
+            ``(pts (M, 2) float32 px, ids (M,), xy (M, 2) undistorted normalized, fresh (M,) bool)``;
+            ``fresh`` marks the tracks whose anchoring failed (their template is to be taken anew).
+            Undistortion is per point, so the previous frame's coordinates are reused and each point is
+            undistorted once.
         """
         p = self.params
         if self._prev_img is None or len(self._prev_pts) == 0:
-            return np.zeros((0, 2), dtype=np.float32), np.zeros(0, dtype=np.int64), np.zeros((0, 2))
+            empty = np.zeros(0, dtype=np.int64)
+            return np.zeros((0, 2), dtype=np.float32), empty, np.zeros((0, 2)), empty.astype(bool)
         lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels}
         p0 = self._prev_pts.reshape(-1, 1, 2)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, None, **lk)
@@ -253,10 +262,10 @@ class KltTracker:
             fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts[fwd], axis=1)
             good[fwd] = (st2.ravel() == 1) & (fb < p.fb_max_error_px)
         pts, ids, xy_prev = p1[good], self._prev_ids[good], self._prev_xy[good]
+        fresh = np.zeros(len(pts), dtype=bool)
         if self._anchors is not None and len(pts):
-            refined, anchored = self._anchors.refine(img, ids, pts)
-            self._anchors.take(img, ids[~anchored], refined[~anchored])
-            pts = refined.astype(np.float32)
+            refined, anchored = self._anchors.refine(img_f32, ids, pts)
+            pts, fresh = refined.astype(np.float32), ~anchored
         xy = self.undistort(pts)
         if len(pts) >= 8:
             a = xy_prev * self._focal_px
@@ -264,8 +273,8 @@ class KltTracker:
             _, inl = cv2.findFundamentalMat(a, b, cv2.FM_RANSAC, p.ransac_threshold_px, p.ransac_confidence)
             if inl is not None:
                 keep = inl.ravel().astype(bool)
-                pts, ids, xy = pts[keep], ids[keep], xy[keep]
-        return pts, ids, xy
+                pts, ids, xy, fresh = pts[keep], ids[keep], xy[keep], fresh[keep]
+        return pts, ids, xy, fresh
 
     def _detect(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """New FAST corners, bucketed on a grid and away from tracked points, shape (N, 2) float32."""
@@ -332,7 +341,8 @@ class KltTracker:
             self.reset()
             return Tracks.empty(frame.t_s, t_imu_s)
         img = self._check_image(frame.image)
-        pts, ids, xy = self._track(img)
+        img_f32 = img.astype(np.float32) if self._anchors is not None else None
+        pts, ids, xy, fresh = self._track(img, img_f32)
         new = self._detect(img, pts)
         if len(new):
             new_ids = np.arange(self._next_id, self._next_id + len(new), dtype=np.int64)
@@ -340,10 +350,12 @@ class KltTracker:
             pts = np.vstack([pts, new]).astype(np.float32)
             ids = np.concatenate([ids, new_ids])
             xy = np.vstack([xy, self.undistort(new)])
-            if self._anchors is not None:
-                self._anchors.take(img, new_ids, new)
+            fresh = np.concatenate([fresh, np.ones(len(new), dtype=bool)])
         if self._anchors is not None:
+            # The templates of the ended tracks go; those of the new tracks and the failed anchorings are
+            # taken (one batch per frame).
             self._anchors.keep_only(ids)
+            self._anchors.take(img_f32, ids[fresh], pts[fresh])
         self._prev_img, self._prev_pts, self._prev_ids = img, pts.astype(np.float32), ids
         self._prev_xy = xy
         return Tracks(frame.t_s, t_imu_s, ids, xy, pts.astype(float))
