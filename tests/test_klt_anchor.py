@@ -112,7 +112,7 @@ def test_affine_anchor_follows_a_patch_stretched_by_zoom():
 
 
 def _per_track_reference(image, tmpl_image, uv0, start, iterations=4, half=6, damping=1e-3, affine=True):
-    """One track at a time, as Baker & Matthews (2004, sec. 3.2) write it: SD images, Hessian, a solve per step.
+    """One track at a time, as Baker & Matthews (2004, sec. 3.2) write it: SD images, Hessian, a solve a step.
 
     Independent of ``TemplateAnchors``' batching and its folded ``J = H^-1 SD^T``; only the bilinear sampler
     is shared. Returns the final centre (2,) and linear warp (2, 2).
@@ -160,7 +160,7 @@ def _per_track_reference(image, tmpl_image, uv0, start, iterations=4, half=6, da
 
 
 def test_batched_alignment_equals_the_per_track_reference():
-    """All tracks aligned at once (one remap, folded solve matrices) = each track aligned alone, by the book."""
+    """All tracks aligned at once (one remap, folded solve matrices) = each aligned alone by the book."""
     rng = np.random.default_rng(7)
     image0 = _texture(8).astype(np.float32)
     centre = np.array([159.5, 119.5])
