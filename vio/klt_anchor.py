@@ -97,8 +97,8 @@ class TemplateAnchors:
         affine_after_px: A track closer than this to where its template was taken is aligned in
             translation only: there is no stretch to correct yet, and on a still real image (EuRoC micro,
             window estimator) the 6-parameter fit is noisier than the 2-parameter one.
-        converged_px: A track stops iterating after a step that moves no point of its patch by more than
-            this (px); 0 = always ``iterations`` steps.
+        converged_px: A track stops iterating after a step that moves its centre by no more than this
+            (px); 0 = always ``iterations`` steps.
     """
 
     def __init__(
@@ -245,15 +245,17 @@ class TemplateAnchors:
         self.drop(np.array([tid for tid in self._slot_of if tid not in live], dtype=np.int64))
 
     def _align(
-        self, img: np.ndarray, c: np.ndarray, A: np.ndarray, rows: np.ndarray, affine: bool
+        self, img: np.ndarray, c: np.ndarray, A: np.ndarray, rows: np.ndarray, affine: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Inverse-compositional Gauss-Newton of the templates in ``rows`` from the warps ``(c, A)``.
 
         Steps (Baker & Matthews 2004, sec. 3.2, eq. 35), on the tracks still iterating:
         1. sample the image at the current warps and normalize the patches (zero mean, unit RMS);
-        2. ``dp = J (I(W) - T)``, with ``J = H^-1 SD^T`` of the template (``J T`` stored);
+        2. ``dp = J (I(W) - T)``, with ``J = H^-1 SD^T`` of the template (``J T`` stored); a
+           translation-only track's ``J`` is its 2x2 solve's in the translation rows and zero in the
+           affine rows, so its ``A`` stays as it is (``(I + 0)^-1 = I`` exactly);
         3. compose with the inverse of the step: ``A <- A (I + D)^-1``, ``c <- c - A (I + D)^-1 t``;
-        4. a track whose patch leaves the image fails; one whose step moved no patch point by more than
+        4. a track whose patch leaves the image fails; one whose centre moved by no more than
            ``converged_px`` stops.
 
         Args:
@@ -261,7 +263,7 @@ class TemplateAnchors:
             c: Start centres (px), shape (N, 2).
             A: Start linear warps, shape (N, 2, 2).
             rows: Storage rows of the templates, shape (N,).
-            affine: Fit the 6 affine parameters (False: the translation only, ``A`` kept).
+            affine: Which tracks fit the 6 affine parameters (the others the translation only), (N,) bool.
 
         Returns:
             ``(c (N, 2), A (N, 2, 2), ok (N,) bool)``: the final warps, and which stayed inside the image.
@@ -269,8 +271,14 @@ class TemplateAnchors:
         c, A = c.copy(), A.copy()
         ok = self._inside_warped(img, c, A)
         idx = np.flatnonzero(ok)  # the tracks still iterating, with their warps (c_i, A_i)
-        J = self._J[rows[idx]] if affine else self._J_t[rows[idx]]
-        J_tmpl = self._J_tmpl[rows[idx]] if affine else self._J_t_tmpl[rows[idx]]
+        J, J_tmpl = self._J[rows[idx]], self._J_tmpl[rows[idx]]
+        transl = np.flatnonzero(~affine[idx])
+        if len(transl):
+            J[transl, :4], J_tmpl[transl, :4] = 0.0, 0.0
+            J[transl, 4:], J_tmpl[transl, 4:] = (
+                self._J_t[rows[idx[transl]]],
+                self._J_t_tmpl[rows[idx[transl]]],
+            )
         c_i, A_i = c[idx], A[idx]
         for _ in range(self.iterations):
             if len(idx) == 0:
@@ -281,17 +289,11 @@ class TemplateAnchors:
             rms = np.sqrt(np.einsum("np,np->n", w, w) / w.shape[1])
             dp = np.matmul(J, w[:, :, None])[:, :, 0] / np.maximum(rms, 1e-9)[:, None] - J_tmpl
             # 3. The inverse compositional update.
-            if affine:
-                A_new = A_i @ _inv_2x2(np.eye(2) + dp[:, [0, 2, 1, 3]].reshape(-1, 2, 2))
-                t = dp[:, 4:]
-                moved = np.maximum(np.hypot(t[:, 0], t[:, 1]), self.half * np.abs(dp[:, :4]).max(axis=1))
-            else:
-                A_new, t = A_i, dp
-                moved = np.hypot(t[:, 0], t[:, 1])
-            c_new = c_i - np.einsum("nij,nj->ni", A_new, t)
+            A_new = A_i @ _inv_2x2(np.eye(2) + dp[:, [0, 2, 1, 3]].reshape(-1, 2, 2))
+            c_new = c_i - np.einsum("nij,nj->ni", A_new, dp[:, 4:])
             # 4. A step that leaves the image fails the track; a small one ends its iterations.
             inside = self._inside_warped(img, c_new, A_new)
-            going = inside & (moved > self.converged_px)
+            going = inside & (np.hypot(dp[:, 4], dp[:, 5]) > self.converged_px)
             if not np.all(going):
                 done = inside & ~going
                 c[idx[done]], A[idx[done]] = c_new[done], A_new[done]
@@ -326,11 +328,7 @@ class TemplateAnchors:
         start = uv[which]
         img = np.asarray(image, dtype=np.float32)
         near = np.linalg.norm(start - self._uv0[rows], axis=1) < self.affine_after_px
-        c, A = start.copy(), self._A[rows].copy()
-        ok = np.zeros(len(rows), dtype=bool)
-        for group, affine in ((near, False), (~near, True)):
-            if np.any(group):
-                c[group], A[group], ok[group] = self._align(img, c[group], A[group], rows[group], affine)
+        c, A, ok = self._align(img, start, self._A[rows], rows, ~near)
         # Acceptance: the aligned patch still matches, did not slide far, and is not stretched too much.
         idx = np.flatnonzero(ok)
         if len(idx) == 0:
