@@ -91,6 +91,10 @@ def test_feature_database_queries():
     xy, mask = db.observations(np.array([12, 13]), np.array([1.0, 2.0]))
     assert mask.tolist() == [[True, True], [False, True]]
     np.testing.assert_allclose(xy[0], [[0.2, 0.2], [0.2, 0.21]])
+    # A time without a frame and an unknown id give empty views.
+    xy, mask = db.observations(np.array([13, 99, 10]), np.array([2.0, 7.0, 1.0]))
+    assert mask.tolist() == [[True, False, False], [False, False, False], [True, False, True]]
+    np.testing.assert_allclose(xy[[0, 2]][:, [0, 2]], [[[0.3, 0.3], [0.0, 0.0]], [[0.01, 0.0], [0.0, 0.0]]])
     db.remove_frame(1.0)
     assert db.num_features == 3  # 11 had only the removed frame
     db.add(3.0, np.array([13]), np.array([[0.31, 0.3]]))
