@@ -137,8 +137,10 @@ class StereoMatchParams:
         tracked_max_level: KLT pyramid levels for the points that have a prior depth (matched in the
             previous frame; None: ``max_level``). Their guess is within a pixel or two, inside the
             full-resolution window, so the coarse levels only cost time: on the stereo look-around (20 s,
-            every 5th frame) level 0 instead of 2 halves the matcher's time (2.6-3.0 -> 1.4 ms), accepts
-            10755 matches instead of 10750, and moves them by 1e-3 px median (99 % under 0.006 px).
+            seed 0, every 5th frame; 93 % of the points have a prior) level 0 instead of 2 takes the
+            matcher from 3.8-4.6 to 2.4 ms (CPU, loaded machine), accepts 10776 matches instead of 10775
+            and moves them by 1e-3 px median (at most 0.04 px); the MSCKF's ATE on three look-arounds
+            5.998 / 6.182 / 7.195 -> 5.988 / 6.179 / 7.190 mm.
         prior_depth_m: Depth of the initial guess of each right point (m).
         max_forward_backward_px: Largest distance of the right-to-left track from the left point (px).
         max_epipolar_px: Largest distance from the epipolar plane, as an angle times the right focal (px).
