@@ -131,7 +131,7 @@ class KltParams:
             with an affine warp (drift correction, :mod:`viotb.vio.klt_anchor`); a refinement that fails
             takes the template anew. Measured (README "KLT track error"): the error of a track 120-400 px
             from where it started 1.38 -> 0.35 px RMS on the stereo look-around; MSCKF ATE on 12 s
-            ``figure8`` / ``aggressive`` / ``circle`` 3.2 / 2.3 / 2.5 -> 1.8 / 1.4 / 1.0 cm; costs ~4 ms of
+            ``figure8`` / ``aggressive`` / ``circle`` 3.2 / 2.3 / 2.5 -> 1.8 / 1.4 / 1.0 cm; costs ~3.4 ms of
             CPU per 320x240 frame.
         anchor_half_size_px: Half side (px) of the anchor templates.
         anchor_max_shift_px: Largest accepted refinement (px) away from the frame-to-frame position.
