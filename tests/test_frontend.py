@@ -91,6 +91,10 @@ def test_feature_database_queries():
     xy, mask = db.observations(np.array([12, 13]), np.array([1.0, 2.0]))
     assert mask.tolist() == [[True, True], [False, True]]
     np.testing.assert_allclose(xy[0], [[0.2, 0.2], [0.2, 0.21]])
+    # A time without a frame and an unknown id give empty views.
+    xy, mask = db.observations(np.array([13, 99, 10]), np.array([2.0, 7.0, 1.0]))
+    assert mask.tolist() == [[True, False, False], [False, False, False], [True, False, True]]
+    np.testing.assert_allclose(xy[[0, 2]][:, [0, 2]], [[[0.3, 0.3], [0.0, 0.0]], [[0.01, 0.0], [0.0, 0.0]]])
     db.remove_frame(1.0)
     assert db.num_features == 3  # 11 had only the removed frame
     db.add(3.0, np.array([13]), np.array([[0.31, 0.3]]))
@@ -143,8 +147,34 @@ def test_klt_backward_pass_on_kept_points_equals_the_full_forward_backward_check
     good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < p.fb_max_error_px)
     good &= cam.in_image(p1.reshape(-1, 2).astype(float), p.border_px)
     assert 0 < good.sum() < len(prev)  # the check rejects some points and keeps most
-    pts, ids, xy = trk._track(img1)
+    pts, ids, xy, _ = trk._track(img1, None)
     kept = np.isin(ids, trk._prev_ids[good])
     assert kept.all()  # RANSAC only removes more
     np.testing.assert_array_equal(pts, p1.reshape(-1, 2)[good][np.isin(trk._prev_ids[good], ids)])
     np.testing.assert_array_equal(xy, trk.undistort(pts))  # each kept point undistorted once, the same
+
+
+def test_backward_pass_from_the_previous_points_keeps_good_tracks_and_drops_a_mismatch():
+    """``fb_max_level``: the backward pass starts at the previous points (VINS-Fusion ``FLOW_BACK``)."""
+    rng = np.random.default_rng(5)
+    cam = PinholeCamera(320, 240, 120.0, 120.0, 160.0, 120.0)
+    img0 = _texture(rng)
+    img1 = _shift(img0, 2.3, -1.1)
+    out = {}
+    for level in (None, 1):
+        trk = KltTracker(cam, KltParams(fb_max_level=level))
+        first = trk.process(CameraFrame(0.0, image=img0), 0.0)
+        second = trk.process(CameraFrame(0.05, image=img1), 0.05)
+        kept = np.isin(second.ids, first.ids)
+        out[level] = (second.ids[kept], second.uv_px[kept])
+        # The kept tracks moved with the shift (the image content moved by +2.3, -1.1 px; a few near the
+        # reflected border less exactly).
+        moved = second.uv_px[kept] - first.uv_px[np.searchsorted(first.ids, second.ids[kept])]
+        assert kept.mean() > 0.8
+        assert np.median(np.linalg.norm(moved - [2.3, -1.1], axis=1)) < 0.05
+        # A frame of another texture: the checks (and RANSAC) drop over 90 % of the tracks (here the full
+        # search keeps 7 of 180, the start at the previous points 12: the weaker check of the two).
+        third = trk.process(CameraFrame(0.1, image=_texture(np.random.default_rng(6))), 0.1)
+        assert np.isin(third.ids, second.ids).mean() < 0.1
+    np.testing.assert_array_equal(out[None][0], out[1][0])  # the same tracks kept on a clean shift
+    np.testing.assert_array_equal(out[None][1], out[1][1])

@@ -23,6 +23,7 @@ from viotb.models.constants import (
 from viotb.vio.camera import CameraCalibration, EquidistantCamera, PinholeCamera
 from viotb.vio.lie import exp_so3
 from viotb.vio.stereo import (
+    StereoMatchParams,
     epipolar_angle_rad,
     match_stereo,
     relative_pose,
@@ -156,6 +157,28 @@ def test_rendered_stereo_matches_triangulate_to_the_depth_buffer(room, view):
     rel = np.abs(matches.depth_m[keep] - truth[keep]) / truth[keep]
     assert np.median(rel) < 0.01
     assert np.mean(rel < 0.05) > 0.97
+
+
+def test_tracked_points_match_on_the_finest_level_as_on_the_full_pyramid(room):
+    """Points with a prior depth match on pyramid level 0 as on the full pyramid from the same guess.
+
+    The prior is last frame's depth (here the first match's, 5 % off): ``tracked_max_level``.
+    """
+    sim, renderer, (c0, c1) = room
+    pos, yaw, pitch = VIEWS["crate"]
+    sim.set_pose(Rotation.from_euler("ZY", [yaw, pitch], degrees=True).as_matrix(), np.array(pos))
+    left, right = renderer.render_gray(sim.data), _gray(renderer, sim.data, HEADSET_CAMERAS[1])
+    uv0 = cv2.goodFeaturesToTrack(left, 300, 0.01, 8, blockSize=5).reshape(-1, 2).astype(float)
+    first = match_stereo(left, right, uv0, c0, c1)  # no prior: the full pyramid
+    prior = np.where(first.mask, first.depth_m * 1.05, np.nan)
+    fine = match_stereo(left, right, uv0, c0, c1, StereoMatchParams(tracked_max_level=0), prior)
+    full = match_stereo(left, right, uv0, c0, c1, StereoMatchParams(tracked_max_level=None), prior)
+    assert np.mean(fine.mask == full.mask) > 0.99
+    both = fine.mask & full.mask
+    assert both.sum() > 0.8 * len(uv0)
+    assert np.percentile(np.linalg.norm(fine.uv1_px[both] - full.uv1_px[both], axis=1), 99) < 0.02
+    # The points without a prior are matched as before.
+    np.testing.assert_array_equal(fine.uv1_px[~first.mask], full.uv1_px[~first.mask])
 
 
 def _marker_scene():

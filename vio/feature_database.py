@@ -119,13 +119,14 @@ class FeatureDatabase:
         F, K = len(ids), len(times)
         xy = np.zeros((F, K, 2))
         mask = np.zeros((F, K), dtype=bool)
-        for k, t in enumerate(times):
-            slot = self._slot_of(float(t))
-            if slot is None:
-                continue
-            ok = cols >= 0
-            xy[ok, k] = self._xy[cam, slot, cols[ok]]
-            mask[ok, k] = self._has[cam, slot, cols[ok]]
+        # The slot of each time (at most one: times are unique keys), then one gather for all of them.
+        hit = np.asarray(times, dtype=float)[:, None] == self._slot_t[None, :]
+        ks, rows = np.flatnonzero(hit.any(axis=1)), np.flatnonzero(cols >= 0)
+        if len(ks) and len(rows):
+            slots = hit[ks].argmax(axis=1)
+            sub = np.ix_(rows, ks)
+            xy[sub] = self._xy[cam][slots[None, :], cols[rows, None]]
+            mask[sub] = self._has[cam][slots[None, :], cols[rows, None]]
         return xy, mask
 
     def remove_features(self, ids: np.ndarray) -> None:

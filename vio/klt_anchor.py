@@ -14,9 +14,12 @@ much), the frame-to-frame position is kept and the template is taken anew there.
 
 The alignment is affine inverse-compositional Lucas-Kanade (Baker and Matthews, "Lucas-Kanade 20 years
 on: a unifying framework", IJCV 56(3), 2004, section 3.2): the template's steepest-descent images and 6x6
-Gauss-Newton matrix are computed once when the template is taken; each iteration only samples the image.
-The residual is taken between zero-mean, unit-variance patches, so an exposure change does not bias it.
-All tracks are aligned at once in numpy (no per-feature Python loop).
+Gauss-Newton matrix are computed once when the template is taken, and folded into one ``6 x P`` matrix
+``J = H^-1 SD^T`` (and ``2 x P`` for the translation-only fit), so that an iteration only samples the image
+(one ``cv2.remap`` of all patches stacked) and takes one batched matrix-vector product. The residual is
+taken between zero-mean, unit-variance patches, so an exposure change does not bias it. All tracks are
+aligned at once in numpy (no per-feature Python loop); a track stops iterating once its step is below
+``converged_px``.
 """
 
 from __future__ import annotations
@@ -52,18 +55,39 @@ def _normalize(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centred / np.maximum(rms, 1e-9)[:, None], rms
 
 
+def _inv_2x2(M: np.ndarray) -> np.ndarray:
+    """Inverses of a stack of 2x2 matrices (N, 2, 2), closed form (the caller keeps them invertible)."""
+    a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
+    out = np.empty_like(M)
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d, -b, -c, a
+    return out / (a * d - b * c)[:, None, None]
+
+
+def singular_values_2x2(M: np.ndarray) -> np.ndarray:
+    """Singular values of a stack of 2x2 matrices (N, 2, 2), largest first, shape (N, 2), closed form.
+
+    ``s1^2, s2^2`` are the eigenvalues of ``M^T M``: ``(f +- sqrt(f^2 - 4 det^2)) / 2`` with ``f`` the squared
+    Frobenius norm.
+    """
+    f = np.sum(M * M, axis=(1, 2))
+    det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
+    root = np.sqrt(np.maximum(f * f - 4.0 * det * det, 0.0))
+    s1 = np.sqrt(0.5 * (f + root))
+    return np.stack([s1, np.abs(det) / np.maximum(s1, 1e-300)], axis=1)
+
+
 class TemplateAnchors:
     """First-appearance templates of live tracks, and their affine alignment into a new image.
 
-    Each track keeps its template, the steepest-descent images and inverse Hessian of the affine
-    inverse-compositional alignment, and the template's current linear warp ``A`` (2x2: template offsets
-    to image offsets), carried from frame to frame: a wide-angle pinhole stretches a patch by up to 2x
-    between the image centre and its edge, which a translation-only match follows by sliding off its
-    point (README "KLT track error").
+    Each track keeps its template, the Gauss-Newton solve matrices of the affine inverse-compositional
+    alignment, and the template's current linear warp ``A`` (2x2: template offsets to image offsets),
+    carried from frame to frame: a wide-angle pinhole stretches a patch by up to 2x between the image
+    centre and its edge, which a translation-only match follows by sliding off its point (README "KLT track
+    error").
 
     Args:
         half_size_px: Template half side (px): the patch is ``(2 h + 1)^2`` pixels.
-        iterations: Gauss-Newton iterations of the alignment.
+        iterations: Largest number of Gauss-Newton iterations of the alignment.
         max_shift_px: Largest accepted distance (px) between the refined and the frame-to-frame position.
         min_zncc: Smallest accepted zero-mean normalized cross-correlation of the aligned patch.
         min_texture: Smallest template RMS (gray levels) for a template to be kept (a flat patch cannot be
@@ -73,6 +97,8 @@ class TemplateAnchors:
         affine_after_px: A track closer than this to where its template was taken is aligned in
             translation only: there is no stretch to correct yet, and on a still real image (EuRoC micro,
             window estimator) the 6-parameter fit is noisier than the 2-parameter one.
+        converged_px: A track stops iterating after a step that moves its centre by no more than this
+            (px); 0 = always ``iterations`` steps.
     """
 
     def __init__(
@@ -85,11 +111,13 @@ class TemplateAnchors:
         max_stretch: float = 4.0,
         damping: float = 1e-3,
         affine_after_px: float = 3.0,
+        converged_px: float = 0.0,
     ) -> None:
         """Create an empty template store."""
         r = np.arange(-half_size_px, half_size_px + 1, dtype=float)
         gy, gx = np.meshgrid(r, r, indexing="ij")
         self._dx, self._dy = gx.ravel(), gy.ravel()
+        self._r = r
         # One extra ring, for the central-difference gradients of the template.
         r1 = np.arange(-half_size_px - 1, half_size_px + 2, dtype=float)
         gy1, gx1 = np.meshgrid(r1, r1, indexing="ij")
@@ -103,14 +131,16 @@ class TemplateAnchors:
         self.max_stretch = max_stretch
         self.damping = damping
         self.affine_after_px = affine_after_px
+        self.converged_px = converged_px
         n_px = self._dx.size
         # Slot storage: a track's template lives in one row until its track ends (no copies per frame).
         self._slot_of: dict[int, int] = {}
         self._free: list[int] = []
         self._tmpl = np.zeros((0, n_px), dtype=np.float32)  # normalized templates (S, P)
-        self._sd = np.zeros((0, n_px, 6), dtype=np.float32)  # steepest-descent images (S, P, 6)
-        self._hinv = np.zeros((0, 6, 6))  # inverse Gauss-Newton matrices (S, 6, 6)
-        self._hinv_t = np.zeros((0, 2, 2))  # inverses of their translation blocks (S, 2, 2)
+        self._J = np.zeros((0, 6, n_px), dtype=np.float32)  # H^-1 SD^T of the affine fit (S, 6, P)
+        self._J_t = np.zeros((0, 2, n_px), dtype=np.float32)  # the translation-only fit's (S, 2, P)
+        self._J_tmpl = np.zeros((0, 6))  # J @ template (S, 6)
+        self._J_t_tmpl = np.zeros((0, 2))  # J_t @ template (S, 2)
         self._A = np.zeros((0, 2, 2))  # current linear warps (S, 2, 2)
         self._uv0 = np.zeros((0, 2))  # where each template was taken (S, 2)
 
@@ -119,17 +149,16 @@ class TemplateAnchors:
         """Ids of the tracks that have a template, sorted, shape (N,)."""
         return np.array(sorted(self._slot_of), dtype=np.int64)
 
+    _STORES = ("_tmpl", "_J", "_J_t", "_J_tmpl", "_J_t_tmpl", "_A", "_uv0")
+
     def _slots(self, n: int) -> np.ndarray:
         """``n`` free rows (the storage doubles when full)."""
         while len(self._free) < n:
             old = len(self._tmpl)
             grow = max(old, n, 64)
-            self._tmpl = np.vstack([self._tmpl, np.zeros((grow, self._tmpl.shape[1]), dtype=np.float32)])
-            self._sd = np.concatenate([self._sd, np.zeros((grow, *self._sd.shape[1:]), dtype=np.float32)])
-            self._hinv = np.concatenate([self._hinv, np.zeros((grow, 6, 6))])
-            self._hinv_t = np.concatenate([self._hinv_t, np.zeros((grow, 2, 2))])
-            self._A = np.concatenate([self._A, np.zeros((grow, 2, 2))])
-            self._uv0 = np.concatenate([self._uv0, np.zeros((grow, 2))])
+            for name in self._STORES:
+                arr = getattr(self, name)
+                setattr(self, name, np.concatenate([arr, np.zeros((grow, *arr.shape[1:]), dtype=arr.dtype)]))
             self._free.extend(range(old + grow - 1, old - 1, -1))
         return np.array([self._free.pop() for _ in range(n)], dtype=np.int64)
 
@@ -146,10 +175,19 @@ class TemplateAnchors:
         return (c[:, 0] >= ex) & (c[:, 0] <= w - 1 - ex) & (c[:, 1] >= ey) & (c[:, 1] <= h - 1 - ey)
 
     def _sample(self, image: np.ndarray, c: np.ndarray, A: np.ndarray) -> np.ndarray:
-        """The image at ``c + A @ (dx, dy)`` for every template point, shape (N, P)."""
-        x = c[:, :1] + A[:, 0, :1] * self._dx + A[:, 0, 1:] * self._dy
-        y = c[:, 1:] + A[:, 1, :1] * self._dx + A[:, 1, 1:] * self._dy
-        return sample_bilinear(image, x, y)
+        """The image at ``c + A @ (dx, dy)`` for every template point, shape (N, P), one ``cv2.remap``.
+
+        The patch grid is separable: ``x[i, j] = (c_x + A_00 r_j) + A_01 r_i`` (and ``y`` alike), one
+        broadcast sum of two (N, side) vectors per coordinate.
+        """
+        r = self._r
+        x = np.add((c[:, :1] + A[:, 0, :1] * r)[:, None, :], (A[:, 0, 1:] * r)[:, :, None], dtype=np.float32)
+        y = np.add((c[:, 1:] + A[:, 1, :1] * r)[:, None, :], (A[:, 1, 1:] * r)[:, :, None], dtype=np.float32)
+        n = len(c)
+        out = cv2.remap(
+            image, x.reshape(n, -1), y.reshape(n, -1), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+        return out.reshape(n, -1)
 
     def take(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray) -> None:
         """Take (or take anew) the templates of tracks ``ids`` at pixels ``uv_px`` (N, 2) of ``image``.
@@ -171,19 +209,24 @@ class TemplateAnchors:
         scale = 1.0 / np.maximum(rms, 1e-9)[:, None]
         gx = 0.5 * (big[:, 1:-1, 2:] - big[:, 1:-1, :-2]).reshape(len(ids), -1) * scale
         gy = 0.5 * (big[:, 2:, 1:-1] - big[:, :-2, 1:-1]).reshape(len(ids), -1) * scale
-        # dW/dp of W(x; p) = (I + [[p1, p3], [p2, p4]]) x + (p5, p6) at p = 0 (Baker & Matthews 2004, sec. 2).
+        # Steepest-descent images, transposed (N, 6, P): the template gradient times dW/dp at p = 0 of
+        # W(x; p) = (I + [[p1, p3], [p2, p4]]) x + (p5, p6) (Baker & Matthews 2004, sec. 2).
         dx, dy = self._dx, self._dy
-        sd = np.stack([gx * dx, gy * dx, gx * dy, gy * dy, gx, gy], axis=2)
-        hess = np.einsum("npi,npj->nij", sd, sd)
+        sd_t = np.stack([gx * dx, gy * dx, gx * dy, gy * dy, gx, gy], axis=1)
+        hess = np.matmul(sd_t, sd_t.transpose(0, 2, 1))
         hess += self.damping * hess[:, np.arange(6), np.arange(6)][:, :, None] * np.eye(6)
         keep = (rms >= self.min_texture) & (np.linalg.det(hess) > 0.0)
         if not np.any(keep):
             return
+        sd_t, hess, tmpl = sd_t[keep], hess[keep], tmpl[keep]
+        J = np.matmul(np.linalg.inv(hess), sd_t)
+        J_t = np.matmul(np.linalg.inv(hess[:, 4:, 4:]), sd_t[:, 4:])
         slots = self._slots(int(keep.sum()))
-        self._tmpl[slots] = tmpl[keep]
-        self._sd[slots] = sd[keep]
-        self._hinv[slots] = np.linalg.inv(hess[keep])
-        self._hinv_t[slots] = np.linalg.inv(hess[keep][:, 4:, 4:])
+        self._tmpl[slots] = tmpl
+        self._J[slots] = J
+        self._J_t[slots] = J_t
+        self._J_tmpl[slots] = np.matmul(J, tmpl[:, :, None].astype(float))[:, :, 0]
+        self._J_t_tmpl[slots] = np.matmul(J_t, tmpl[:, :, None].astype(float))[:, :, 0]
         self._A[slots] = np.eye(2)
         self._uv0[slots] = uv[keep]
         for tid, slot in zip(ids[keep].tolist(), slots.tolist(), strict=True):
@@ -201,11 +244,71 @@ class TemplateAnchors:
         live = set(np.asarray(ids, dtype=np.int64).tolist())
         self.drop(np.array([tid for tid in self._slot_of if tid not in live], dtype=np.int64))
 
+    def _align(
+        self, img: np.ndarray, c: np.ndarray, A: np.ndarray, rows: np.ndarray, affine: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Inverse-compositional Gauss-Newton of the templates in ``rows`` from the warps ``(c, A)``.
+
+        Steps (Baker & Matthews 2004, sec. 3.2, eq. 35), on the tracks still iterating:
+        1. sample the image at the current warps and normalize the patches (zero mean, unit RMS);
+        2. ``dp = J (I(W) - T)``, with ``J = H^-1 SD^T`` of the template (``J T`` stored); a
+           translation-only track's ``J`` is its 2x2 solve's in the translation rows and zero in the
+           affine rows, so its ``A`` stays as it is (``(I + 0)^-1 = I`` exactly);
+        3. compose with the inverse of the step: ``A <- A (I + D)^-1``, ``c <- c - A (I + D)^-1 t``;
+        4. a track whose patch leaves the image fails; one whose centre moved by no more than
+           ``converged_px`` stops.
+
+        Args:
+            img: float32 image (H, W).
+            c: Start centres (px), shape (N, 2).
+            A: Start linear warps, shape (N, 2, 2).
+            rows: Storage rows of the templates, shape (N,).
+            affine: Which tracks fit the 6 affine parameters (the others the translation only), (N,) bool.
+
+        Returns:
+            ``(c (N, 2), A (N, 2, 2), ok (N,) bool)``: the final warps, and which stayed inside the image.
+        """
+        c, A = c.copy(), A.copy()
+        ok = self._inside_warped(img, c, A)
+        idx = np.flatnonzero(ok)  # the tracks still iterating, with their warps (c_i, A_i)
+        J, J_tmpl = self._J[rows[idx]], self._J_tmpl[rows[idx]]
+        transl = np.flatnonzero(~affine[idx])
+        if len(transl):
+            J[transl, :4], J_tmpl[transl, :4] = 0.0, 0.0
+            J[transl, 4:], J_tmpl[transl, 4:] = (
+                self._J_t[rows[idx[transl]]],
+                self._J_t_tmpl[rows[idx[transl]]],
+            )
+        c_i, A_i = c[idx], A[idx]
+        for _ in range(self.iterations):
+            if len(idx) == 0:
+                break
+            # 1.-2. J (w / rms - T) with w the zero-mean patch.
+            w = self._sample(img, c_i, A_i)
+            w -= w.mean(axis=1, keepdims=True)
+            rms = np.sqrt(np.einsum("np,np->n", w, w) / w.shape[1])
+            dp = np.matmul(J, w[:, :, None])[:, :, 0] / np.maximum(rms, 1e-9)[:, None] - J_tmpl
+            # 3. The inverse compositional update.
+            A_new = A_i @ _inv_2x2(np.eye(2) + dp[:, [0, 2, 1, 3]].reshape(-1, 2, 2))
+            c_new = c_i - np.einsum("nij,nj->ni", A_new, dp[:, 4:])
+            # 4. A step that leaves the image fails the track; a small one ends its iterations.
+            inside = self._inside_warped(img, c_new, A_new)
+            going = inside & (np.hypot(dp[:, 4], dp[:, 5]) > self.converged_px)
+            if not np.all(going):
+                done = inside & ~going
+                c[idx[done]], A[idx[done]] = c_new[done], A_new[done]
+                ok[idx[~inside]] = False
+                idx, J, J_tmpl = idx[going], J[going], J_tmpl[going]
+                c_new, A_new = c_new[going], A_new[going]
+            c_i, A_i = c_new, A_new
+        c[idx], A[idx] = c_i, A_i
+        return c, A, ok
+
     def refine(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Align the templates of ``ids`` into ``image``, starting from the frame-to-frame pixels ``uv_px``.
 
         Args:
-            image: The new grayscale image (H, W).
+            image: The new grayscale image (H, W) (float32 avoids a conversion).
             ids: Track ids (N,).
             uv_px: Frame-to-frame positions (px), shape (N, 2).
 
@@ -223,31 +326,18 @@ class TemplateAnchors:
         if len(rows) == 0:
             return uv, anchored
         start = uv[which]
-        near = np.linalg.norm(start - self._uv0[rows], axis=1) < self.affine_after_px
-        c, A = start.copy(), self._A[rows].copy()
-        tmpl, sd, hinv = self._tmpl[rows], self._sd[rows], self._hinv[rows]
-        hinv_near = self._hinv_t[rows[near]]  # the translation blocks' inverses of the near tracks
         img = np.asarray(image, dtype=np.float32)
-        ok = self._inside_warped(img, c, A)
-        for _ in range(self.iterations):
-            warped, _ = _normalize(self._sample(img, c, A))
-            # Inverse compositional step (Baker & Matthews 2004, eq. 35): dp = H^-1 sum SD^T (I(W) - T),
-            # then W <- W o W(dp)^-1: A <- A (I + D)^-1, c <- c - A (I + D)^-1 t.
-            grad = np.einsum("npi,np->ni", sd, warped - tmpl)
-            dp = np.einsum("nij,nj->ni", hinv, grad)
-            dp[near, :4] = 0.0  # translation only: the 2x2 block's solve
-            dp[near, 4:] = np.einsum("nij,nj->ni", hinv_near, grad[near, 4:])
-            inv = np.linalg.inv(np.eye(2) + dp[:, [0, 2, 1, 3]].reshape(-1, 2, 2))
-            A_new = A @ inv
-            c_new = c - np.einsum("nij,nj->ni", A_new, dp[:, 4:])
-            A = np.where(ok[:, None, None], A_new, A)
-            c = np.where(ok[:, None], c_new, c)
-            ok &= self._inside_warped(img, c, A)
-        warped, _ = _normalize(self._sample(img, c, A))
-        zncc = np.mean(warped * tmpl, axis=1)
-        sv = np.linalg.svd(A, compute_uv=False)
-        ok &= (zncc >= self.min_zncc) & (np.linalg.norm(c - start, axis=1) <= self.max_shift_px)
-        ok &= (sv[:, 0] <= self.max_stretch) & (sv[:, 1] >= 1.0 / self.max_stretch)
+        near = np.linalg.norm(start - self._uv0[rows], axis=1) < self.affine_after_px
+        c, A, ok = self._align(img, start, self._A[rows], rows, ~near)
+        # Acceptance: the aligned patch still matches, did not slide far, and is not stretched too much.
+        idx = np.flatnonzero(ok)
+        if len(idx) == 0:
+            return uv, anchored
+        warped, _ = _normalize(self._sample(img, c[idx], A[idx]))
+        zncc = np.mean(warped * self._tmpl[rows[idx]], axis=1)
+        sv = singular_values_2x2(A[idx])
+        ok[idx] = (zncc >= self.min_zncc) & (np.linalg.norm(c[idx] - start[idx], axis=1) <= self.max_shift_px)
+        ok[idx] &= (sv[:, 0] <= self.max_stretch) & (sv[:, 1] >= 1.0 / self.max_stretch)
         uv[which[ok]] = c[ok]
         anchored[which[ok]] = True
         self._A[rows[ok]] = A[ok]

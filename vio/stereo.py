@@ -134,6 +134,13 @@ class StereoMatchParams:
     Attributes:
         win_size_px: KLT window side (px).
         max_level: KLT pyramid levels above the image.
+        tracked_max_level: KLT pyramid levels for the points that have a prior depth (matched in the
+            previous frame; None: ``max_level``). Their guess is within a pixel or two, inside the
+            full-resolution window, so the coarse levels only cost time: on the stereo look-around (20 s,
+            seed 0, every 5th frame; 93 % of the points have a prior) level 0 instead of 2 takes the
+            matcher from 3.8-4.6 to 2.4 ms (CPU, loaded machine), accepts 10776 matches instead of 10775
+            and moves them by 1e-3 px median (at most 0.04 px); the MSCKF's ATE on three look-arounds
+            5.998 / 6.182 / 7.195 -> 5.988 / 6.179 / 7.190 mm.
         prior_depth_m: Depth of the initial guess of each right point (m).
         max_forward_backward_px: Largest distance of the right-to-left track from the left point (px).
         max_epipolar_px: Largest distance from the epipolar plane, as an angle times the right focal (px).
@@ -143,6 +150,7 @@ class StereoMatchParams:
 
     win_size_px: int = 21
     max_level: int = 3
+    tracked_max_level: int | None = 0
     prior_depth_m: float = 2.0
     max_forward_backward_px: float = 0.5
     max_epipolar_px: float = 1.5
@@ -206,24 +214,37 @@ def match_stereo(
     # 1. Initial guess at the prior depth.
     b0 = cam0.unproject(uv0.astype(float))
     depth = np.full(n, p.prior_depth_m)
+    has_prior = np.zeros(n, dtype=bool)
     if prior_depth_m is not None:
         given = np.asarray(prior_depth_m, dtype=float).reshape(n)
-        depth = np.where(np.isfinite(given) & (given > 0.0), given, depth)
+        has_prior = np.isfinite(given) & (given > 0.0)
+        depth = np.where(has_prior, given, depth)
     with np.errstate(divide="ignore", invalid="ignore"):
         guess_C1 = (b0 * (depth[:, None] / b0[:, 2:3])) @ R_C1C0.T + p_C1C0
     guess = cam1.project(guess_C1)
     guess = np.where(np.isfinite(guess) & (guess_C1[:, 2:3] > 0.0), guess, uv0).astype(np.float32)
-    # 2.-3. KLT forward and backward.
+    # 2.-3. KLT forward and backward (the points with a prior depth on their own pyramid depth).
     lk = {
         "winSize": (p.win_size_px, p.win_size_px),
-        "maxLevel": p.max_level,
         "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
         "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
     }
-    uv1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        image0, image1, uv0.reshape(-1, 1, 2), guess.reshape(-1, 1, 2), **lk
-    )
-    back, st0, _ = cv2.calcOpticalFlowPyrLK(image1, image0, uv1, uv0.reshape(-1, 1, 2).copy(), **lk)
+    uv1 = np.zeros((n, 1, 2), dtype=np.float32)
+    back = np.zeros((n, 1, 2), dtype=np.float32)
+    st1 = np.zeros((n, 1), dtype=np.uint8)
+    st0 = np.zeros((n, 1), dtype=np.uint8)
+    levels = p.max_level if p.tracked_max_level is None else p.tracked_max_level
+    groups = [(has_prior, levels), (~has_prior, p.max_level)] if levels != p.max_level else [(None, levels)]
+    for sel, level in groups:
+        idx = np.arange(n) if sel is None else np.flatnonzero(sel)
+        if len(idx) == 0:
+            continue
+        start0 = uv0[idx].reshape(-1, 1, 2)
+        fwd, s1, _ = cv2.calcOpticalFlowPyrLK(
+            image0, image1, start0, guess[idx].reshape(-1, 1, 2), maxLevel=level, **lk
+        )
+        bwd, s0, _ = cv2.calcOpticalFlowPyrLK(image1, image0, fwd, start0.copy(), maxLevel=level, **lk)
+        uv1[idx], st1[idx], back[idx], st0[idx] = fwd, s1, bwd, s0
     uv1 = uv1.reshape(-1, 2).astype(float)
     ok = (st1.ravel() == 1) & (st0.ravel() == 1)
     ok &= np.linalg.norm(back.reshape(-1, 2) - uv0, axis=1) <= p.max_forward_backward_px

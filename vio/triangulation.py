@@ -77,17 +77,6 @@ class TriangulationResult:
     condition_number: np.ndarray
 
 
-def _project_inverse_depth(
-    params: np.ndarray, R_CA: np.ndarray, p_AC: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """``h_k = R_CA_k ([alpha, beta, 1] - rho p_AC_k)`` (F, K, 3) and normalized ``z_hat`` (F, K, 2)."""
-    m = np.stack([params[:, 0], params[:, 1], np.ones(len(params))], axis=1)
-    d = m[:, None, :] - params[:, 2, None, None] * p_AC
-    h = np.einsum("fkij,fkj->fki", R_CA, d)
-    z = h[..., :2] / np.where(np.abs(h[..., 2:3]) < 1e-12, 1e-12, h[..., 2:3])
-    return h, z
-
-
 def triangulate(
     R_WC: np.ndarray,
     p_WC: np.ndarray,
@@ -134,37 +123,38 @@ def triangulate(
     b /= np.linalg.norm(b, axis=2, keepdims=True)
     proj = np.eye(3) - b[..., :, None] * b[..., None, :]
     A = np.einsum("fk,fkij->fij", w, proj)
-    rhs = np.einsum("fk,fkij,fkj->fi", w, proj, p_AC)
+    rhs = np.einsum("fk,fki->fi", w, (proj @ p_AC[..., None])[..., 0])
     U, S, Vt = np.linalg.svd(A)
     cond = S[:, 0] / np.maximum(S[:, 2], 1e-300)
     S_inv = np.where(S > S[:, :1] * 1e-12, 1.0 / np.maximum(S, 1e-300), 0.0)
-    p_A = np.einsum("fji,fj,fkj,fk->fi", Vt, S_inv, U, rhs)
+    p_A = np.einsum("fji,fj->fi", Vt, S_inv * np.einsum("fkj,fk->fj", U, rhs))  # V S^+ U^T rhs
     z0 = np.where(p_A[:, 2] > 1e-6, p_A[:, 2], 1.0)
     x = np.stack([p_A[:, 0] / z0, p_A[:, 1] / z0, 1.0 / z0], axis=1)
-    # 3. Levenberg-Marquardt on inverse depth, one damping per feature.
+    # 3. Levenberg-Marquardt on inverse depth, one damping per feature. h = R_CA ([alpha, beta, 1] - rho p_AC)
+    #    is affine in x: h = h_1 + dh/dx x with h_1 = R_CA e_z and dh/dx = [R_CA e_x, R_CA e_y, -R_CA p_AC],
+    #    both built once; z = h[:2] / h[2] gives the rows of J = dz/dx from the rows of dh/dx directly.
     R_CA = np.swapaxes(R_AC, 2, 3)
+    dh_dx = np.concatenate([R_CA[..., :, 0:1], R_CA[..., :, 1:2], -(R_CA @ p_AC[..., None])], axis=3)
+    h_1 = R_CA[..., :, 2]
 
     def cost_of(params_: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        h_, z_ = _project_inverse_depth(params_, R_CA, p_AC)
+        h_ = h_1 + np.einsum("fkij,fj->fki", dh_dx, params_)
+        z_ = h_[..., :2] / np.where(np.abs(h_[..., 2:3]) < 1e-12, 1e-12, h_[..., 2:3])
         e_ = (z_ - xy) * w[..., None]
         return h_, e_, np.einsum("fki,fki->f", e_, e_)
 
     h, e, cost = cost_of(x)
     lam = np.full(F, p.initial_damping)
-    # dh/dx of h = R_CA ([alpha, beta, 1] - rho p_AC) does not depend on x: built once, (F, K, 3, 3).
-    dh_dx = np.concatenate([R_CA[..., :, 0:1], R_CA[..., :, 1:2], -(R_CA @ p_AC[..., None])], axis=3)
     tiny_eye = 1e-12 * np.eye(3)
     for _ in range(p.max_iterations):
-        inv_z = 1.0 / np.where(np.abs(h[..., 2]) < 1e-12, 1e-12, h[..., 2])
+        inv_z = w / np.where(np.abs(h[..., 2]) < 1e-12, 1e-12, h[..., 2])  # w = 0 or 1: masked rows 0
         zx, zy = h[..., 0] * inv_z, h[..., 1] * inv_z
-        dz_dh = np.zeros((F, K, 2, 3))
-        dz_dh[..., 0, 0] = inv_z
-        dz_dh[..., 1, 1] = inv_z
-        dz_dh[..., 0, 2] = -zx * inv_z
-        dz_dh[..., 1, 2] = -zy * inv_z
-        J = (dz_dh @ dh_dx) * w[..., None, None]
-        JtJ = np.einsum("fkia,fkib->fab", J, J)
-        Jte = np.einsum("fkia,fki->fa", J, e)
+        J = np.empty((F, K, 2, 3))
+        J[..., 0, :] = dh_dx[..., 0, :] * inv_z[..., None] - dh_dx[..., 2, :] * (zx * inv_z)[..., None]
+        J[..., 1, :] = dh_dx[..., 1, :] * inv_z[..., None] - dh_dx[..., 2, :] * (zy * inv_z)[..., None]
+        J = J.reshape(F, 2 * K, 3)
+        JtJ = np.swapaxes(J, 1, 2) @ J
+        Jte = np.einsum("fma,fm->fa", J, e.reshape(F, 2 * K))
         diag = np.diagonal(JtJ, axis1=1, axis2=2)[:, None, :]
         damp = JtJ + lam[:, None, None] * (np.eye(3) * diag + tiny_eye)
         dx = -np.linalg.solve(damp, Jte[..., None])[..., 0]
