@@ -99,10 +99,12 @@ class HeadsetOptions:
 # A clone at every frame updates at 30 Hz after 11 frames (headset-still, 8 s, stereo: ATE 16.8 -> 4.2 mm,
 # max 68 -> 6.7 mm, jitter 6.3 -> 0.9 mm).
 #
-# The KLT noise the headset's filter is told is the one measured on the anchored tracks of this project's
-# renders (``benchmarks/klt_track_error.py``, robust core fit, 20 s drone recordings: white 0.03 px, walk
-# 0.0001 px^2/px), with a margin for the heavy tail the chi-square gate leaves and for the IMU intrinsics
-# no estimator here models: 0.05 px and 0.0002 px^2/px. Told 0.5 px and 0.005 px^2/px (before), the
+# The KLT noise the headset's filter is told starts from the one measured on the anchored tracks of this
+# project's renders (``benchmarks/klt_track_error.py``, robust core fit, 20 s drone recordings: white
+# 0.027-0.032 px, walk 0.00003-0.00012 px^2/px; the drone model built on it, with its margins, is
+# ``msckf_params.RENDER_KLT_PIXEL_SIGMA_PX`` / ``RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX``). The headset's
+# own margin was chosen on the stereo look-around, seeds 0-2: 0.05 px and 0.0002 px^2/px (0.1 px with
+# 0.0005 held seed 2 to 7.2 mm; 0.05 px with 0.001 to 7.4 mm). Told 0.5 px and 0.005 px^2/px (before), the
 # filter weighted its cameras far below what they deliver and drifted on the IMU: the stereo look-around
 # (20 s, seeds 0 / 1 / 2) held the world to 6.6 / 9.8 / 16.7 mm, now 4.9 / 4.3 / 4.2 mm (NEES 0.34 / 0.85
 # / 1.79 -> 2.5 / 2.6 / 2.4; README "Headset tracking").
