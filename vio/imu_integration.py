@@ -161,14 +161,16 @@ def integrate_step(
 ) -> tuple[ImuValues, np.ndarray]:
     """Integrate one IMU interval and return the new nominal state and the transition matrix.
 
+    :func:`integrate_mean` then :func:`step_transition`; the arguments are theirs.
+
     Args:
-        imu: State at the start of the interval (biases are held).
-        w0: Bias-corrected angular rate (rad/s) at the start, shape (3,); ``w1`` at the end.
-        w1: See ``w0``.
-        a0: Bias-corrected specific force (m/s^2) at the start, shape (3,); ``a1`` at the end.
-        a1: See ``a0``.
-        dt: Interval length (s), > 0.
-        method: Integration method.
+        imu: See :func:`integrate_mean`.
+        w0: See :func:`integrate_mean`.
+        w1: See :func:`integrate_mean`.
+        a0: See :func:`integrate_mean`.
+        a1: See :func:`integrate_mean`.
+        dt: See :func:`integrate_mean`.
+        method: See :func:`integrate_mean`.
         imu_fej: First estimates at the start (None: use ``imu``, i.e. the plain Jacobian).
 
     Returns:

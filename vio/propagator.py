@@ -318,22 +318,23 @@ class Propagator:
             return start_imu.copy(), (np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM)))
         t, g, a = self.buffer.arrays()
         if n >= 2 and t[n - 2] == start_t_s and t[n - 1] == t_s:  # one interval (times increase)
-            w = g[n - 2 :] - start_imu.gyro_bias_rad_s
-            f = a[n - 2 :] - start_imu.accel_bias_m_s2
-            dt_s = float(t[n - 1] - t[n - 2])
-            step = integrate_mean(start_imu, w[0], w[1], f[0], f[1], dt_s, self.method)
+            step = self._interval_mean(start_imu, t, g, a, n - 2)
             return step.new, step
         t, g, a = select_imu_readings(t, g, a, start_t_s, t_s)
-        dt = np.diff(t)
-        k = np.flatnonzero(dt > 0.0)
+        k = np.flatnonzero(np.diff(t) > 0.0)
         if k.size != 1:
             vals, phi, q = propagate_values(start_imu, t, g, a, self.method, self.noise)
             return vals, (phi, q)
-        j = int(k[0])
+        step = self._interval_mean(start_imu, t, g, a, int(k[0]))
+        return step.new, step
+
+    def _interval_mean(
+        self, start_imu: ImuValues, t: np.ndarray, g: np.ndarray, a: np.ndarray, j: int
+    ) -> StepMean:
+        """:func:`integrate_mean` over readings ``j``, ``j + 1``: ``t`` (n,) s, raw ``g``, ``a`` (n, 3)."""
         w = g[j : j + 2] - start_imu.gyro_bias_rad_s
         f = a[j : j + 2] - start_imu.accel_bias_m_s2
-        step = integrate_mean(start_imu, w[0], w[1], f[0], f[1], float(dt[j]), self.method)
-        return step.new, step
+        return integrate_mean(start_imu, w[0], w[1], f[0], f[1], float(t[j + 1] - t[j]), self.method)
 
     def propagate_and_clone(self, state: State, t_cam_s: float) -> None:
         """Propagate to the IMU time ``t_cam_s + time_offset`` and clone the pose keyed by ``t_cam_s``."""
