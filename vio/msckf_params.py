@@ -87,6 +87,10 @@ class MsckfParams:
         extrinsic_sigma_m: Prior sigma (m) of the extrinsic translation.
         estimate_time_offset: Estimate the camera-IMU time offset online.
         time_offset_sigma_s: Prior sigma (s) of the time offset.
+        imu_intrinsics: Online IMU intrinsics (:mod:`viotb.vio.imu_intrinsics`): ``"none"`` (default),
+            ``"gyro"`` (the 3x3 gyro correction, 9 states) or ``"gyro+accel"`` (and the accelerometer's, 18).
+        imu_intrinsic_sigma: Prior sigma of every entry of an estimated correction matrix (dimensionless;
+            0.005: 0.5 % scale factor, 0.29 deg misalignment), about the identity.
         max_position_sigma_m: Position sigma (m) beyond which the filter declares divergence.
         runaway_frames: Consecutive frames with most features failing the gate that declare divergence.
         runaway_min_features: Fewest gated features for a frame to count towards ``runaway_frames``.
@@ -127,6 +131,8 @@ class MsckfParams:
     extrinsic_sigma_m: float = 0.005
     estimate_time_offset: bool = False
     time_offset_sigma_s: float = 0.005
+    imu_intrinsics: str = "none"
+    imu_intrinsic_sigma: float = 0.005
     max_position_sigma_m: float = 100.0
     runaway_frames: int = 10
     runaway_min_features: int = 5
