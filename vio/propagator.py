@@ -21,6 +21,11 @@ derivative of the chosen integrator, written in the first-estimates form of open
 which equals the plain Jacobian when the first estimates equal the current values and maps the yaw/position
 null space at the old first estimates exactly onto the one at the new values.
 
+With online IMU intrinsics (:mod:`viotb.vio.imu_intrinsics`) the readings are ``w = T_g (gyro - b_g)``,
+``a = T_a (accel - b_a)``, the bias columns are the above times ``T_g`` / ``T_a``, and ``Phi`` gains the
+columns of the intrinsic blocks (:func:`~viotb.vio.imu_integration.intrinsic_columns`); the state's
+``[imu, intrinsics]`` part is propagated together (:func:`~viotb.vio.state.ekf_propagate`).
+
 Noise (Kalibr densities, see DESIGN.md): white gyro/accel noise acts over an interval like a bias offset of
 variance ``density^2 / dt`` so it enters through the bias columns of ``Phi``; the random walks add
 ``density^2 dt`` to the bias blocks.
@@ -234,12 +239,33 @@ def propagate_values(
         wr, ar = gyro - imu.gyro_bias_rad_s, accel - imu.accel_bias_m_s2
         raw = np.stack([wr[k], wr[k + 1], ar[k], ar[k + 1]], axis=1)
         phi = extend_transition(phi, intrinsic_columns(method, dt, *parts, raw, intrinsics), intrinsics)
+        return cur, *_chain_extended(phi, discrete_noise_batch(phi[:, :IMU_DIM, :IMU_DIM], noise, dt))
     q = discrete_noise_batch(phi, noise, dt)
     phi_tot, q_tot = phi[0], q[0]
     for j in range(1, k.size):
         phi_tot = phi[j] @ phi_tot
         q_tot = phi[j] @ q_tot @ phi[j].T + q[j]
     return cur, phi_tot.copy(), q_tot.copy()
+
+
+def _chain_extended(phi: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The span's ``(Phi, Q)`` (d, d) from the intervals' ``[[A, C], [0, I]]`` (m, d, d) and Q (m, 15, 15).
+
+    The intrinsic rows stay ``[0, I]`` and take no noise, so only ``A`` (15, 15), ``C`` (15, n) and the
+    IMU noise are chained: ``C <- A_k C + C_k``, ``A <- A_k A``, ``Q <- A_k Q A_k^T + Q_k`` (the full
+    product's blocks, in the same order).
+    """
+    A, C = phi[:, :IMU_DIM, :IMU_DIM], phi[:, :IMU_DIM, IMU_DIM:]
+    a_tot, c_tot, q_tot = A[0], C[0], q[0]
+    for j in range(1, phi.shape[0]):
+        c_tot = A[j] @ c_tot + C[j]
+        a_tot = A[j] @ a_tot
+        q_tot = A[j] @ q_tot @ A[j].T + q[j]
+    d = phi.shape[1]
+    phi_tot, q_out = np.eye(d), np.zeros((d, d))
+    phi_tot[:IMU_DIM, :IMU_DIM], phi_tot[:IMU_DIM, IMU_DIM:] = a_tot, c_tot
+    q_out[:IMU_DIM, :IMU_DIM] = q_tot
+    return phi_tot, q_out
 
 
 class Propagator:
