@@ -247,3 +247,23 @@ def test_msckf_estimates_the_gyro_matrix_on_a_synthetic_flight():
     assert err @ np.linalg.solve(P, err) < 27.9
     assert np.sqrt(np.diag(P)).max() < 0.25 * 0.02
     assert np.mean(nees) < 6.0
+
+
+def test_state_places_the_intrinsic_blocks_after_the_imu_and_corrects_them():
+    """Blocks [imu, gyro, accel, extrinsic]; an update's correction lands row-major in T_g / T_a."""
+    from viotb.vio.state import ekf_propagate
+
+    imu = ImuValues(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
+    intr = ImuIntrinsics.identity(True, True)
+    st = State(0.0, imu, np.eye(15), np.eye(3), np.zeros(3), 0.0, np.eye(6), None, intr, np.eye(18) * 1e-4)
+    assert [b.name for b in st.blocks] == ["imu", "imu_intr_gyro", "imu_intr_accel", "extrinsic"]
+    assert st.block("imu_intr_gyro").offset == 15 and st.block("extrinsic").offset == 33
+    assert st.propagated_dim == 33
+    H = np.zeros((2, st.dim))
+    H[0, 15 + 5] = 1.0  # T_g[1, 2]
+    H[1, 24 + 6] = 1.0  # T_a[2, 0]
+    ekf_update(st, H, np.array([0.01, -0.02]), 1e-12)
+    assert st.intrinsics.T_g[1, 2] == pytest.approx(0.01) and st.intrinsics.T_a[2, 0] == pytest.approx(-0.02)
+    assert intr.T_g[1, 2] == 0.0  # the state keeps a copy
+    with pytest.raises(ValueError, match="must be \\(33, 33\\)"):
+        ekf_propagate(st, np.eye(15), np.zeros((15, 15)))
