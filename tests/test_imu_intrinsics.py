@@ -198,7 +198,7 @@ def test_correct_readings_without_intrinsics_is_bias_removal():
 def test_msckf_estimates_the_gyro_matrix_on_a_synthetic_flight():
     """The whole filter (``imu_intrinsics="gyro"``) on ``test_msckf``'s flight, a gyro reading M w + b.
 
-    Simulated features (0.5 px), M with 1e-2 scale and misalignment errors, 20 s (~15 s on a quiet core):
+    Simulated features (0.5 px), M with 1e-2 scale and misalignment errors, 20 s (5-20 s of CPU by load):
     the estimated ``T_g`` is within its covariance of ``M^-1`` (chi-square, 9 dof, 99.9 %; measured 4.0),
     its sigmas fall to a quarter of the 0.02 prior or less (measured 1.2e-3-5.0e-3: the yaw-rate column,
     excited by a near-constant 0.4 rad/s, is the least known) and the position NEES stays consistent.
