@@ -89,7 +89,7 @@ def main() -> None:
     ap.add_argument("--scenarios", default="", help="comma-separated names (default: every headset-*)")
     ap.add_argument("--seconds", type=float, default=None, help="override every scenario's duration")
     ap.add_argument("--imu", default=None, help="IMU preset (default: the scenario's)")
-    ap.add_argument("--gyro-noise-inflation", type=float, default=10.0)
+    ap.add_argument("--gyro-noise-inflation", type=float, default=None)  # None: the headset runner's
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args()
 

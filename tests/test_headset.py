@@ -276,12 +276,23 @@ def test_eval_uses_cam1_with_cameras_2(tmp_path):
 
 
 def test_headset_estimator_settings():
-    """The headset runner clones at every frame and tells the estimator a 10x gyro noise density."""
-    from viotb.envs.run.headset import HEADSET_MSCKF, HeadsetOptions, estimator_imu_noise
+    """The headset MSCKF clones at every frame and estimates its gyro matrix; the gyro noise it is told."""
+    from viotb.envs.run.headset import (
+        HEADSET_MSCKF,
+        HeadsetOptions,
+        default_gyro_noise_inflation,
+        estimator_imu_noise,
+    )
+    from viotb.vio.msckf_params import MsckfParams
 
     assert HEADSET_MSCKF.keyframing.every_n_frames == 1
+    assert HEADSET_MSCKF.imu_intrinsics == "gyro"
+    assert HeadsetOptions().gyro_noise_inflation is None
+    assert default_gyro_noise_inflation("msckf", HEADSET_MSCKF) == 2.0
+    assert default_gyro_noise_inflation("msckf", MsckfParams()) == 10.0  # no intrinsics: 10x covers them
+    assert default_gyro_noise_inflation("window", HEADSET_MSCKF) == 10.0
     noise = imu_preset("icm42688-1khz").noise
-    told = estimator_imu_noise(noise, HeadsetOptions().gyro_noise_inflation)
+    told = estimator_imu_noise(noise, 10.0)
     assert told.gyro_noise_density_rad_s_sqrthz == pytest.approx(10.0 * noise.gyro_noise_density_rad_s_sqrthz)
     assert told.gyro_random_walk_rad_s2_sqrthz == noise.gyro_random_walk_rad_s2_sqrthz
     assert told.accel_noise_density_m_s2_sqrthz == noise.accel_noise_density_m_s2_sqrthz

@@ -1,7 +1,8 @@
 """Issue #12's look-around target on the real front end: stereo KLT on the rendered pair, raw IMU, 20 s.
 
 Three seeds of ``headset-look-around`` (yaw +-60 deg up to 200 deg/s, in place), ``msckf`` with two
-cameras and the headset's settings (``HEADSET_MSCKF``). The targets: world-lock ATE <= 5 mm and max error
+cameras and the headset's settings (``HEADSET_MSCKF``: the gyro's scale/misalignment estimated online, the
+gyro noise told 2x the sensor's). The targets: world-lock ATE <= 5 mm and max error
 <= 10 mm, and the position NEES within the 95 % band of its chi-square statistic; with three runs the mean
 of the three per-run means is compared with ``chi2(9) / 3`` (each run's mean NEES counted as one 3-dof
 draw, as the README's single-run band does). Slow: three rendered 20 s runs (~1 min each on a quiet core).
@@ -40,7 +41,7 @@ def test_stereo_look_around_world_lock_and_consistency(look_around_results):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="max error 11.0 mm on seed 0 (README 'Headset tracking'): not met")
 def test_stereo_look_around_max_error(look_around_results):
+    """Measured 6.8 / 7.7 / 7.3 mm (11.1 / 8.1 / 8.6 mm without the online gyro intrinsics, 10x noise)."""
     for r in look_around_results:
         assert r["max_err_mm"] <= 10.0, r

@@ -19,6 +19,7 @@ from enum import Enum
 from typing import NamedTuple
 
 import numpy as np
+from viotb.vio.imu_intrinsics import ImuIntrinsics, input_jacobian
 from viotb.vio.lie import (
     exp_so3,
     exp_so3_batch,
@@ -52,6 +53,8 @@ class StepMean(NamedTuple):
         Rm: RK4: mid-interval orientation, shape (3, 3); None for DISCRETE.
         am: RK4: mean bias-corrected specific force (m/s^2), shape (3,); None for DISCRETE.
         a1: RK4: bias-corrected specific force at the end (m/s^2), shape (3,); None for DISCRETE.
+        raw: With online IMU intrinsics: the bias-removed raw readings ``[w_m0, w_m1, a_m0, a_m1] - b``
+            the corrected ones came from, shape (4, 3) (:func:`intrinsic_columns`); else None.
     """
 
     start: ImuValues
@@ -64,6 +67,7 @@ class StepMean(NamedTuple):
     Rm: np.ndarray | None
     am: np.ndarray | None
     a1: np.ndarray | None
+    raw: np.ndarray | None = None
 
 
 def integrate_mean(
@@ -74,6 +78,7 @@ def integrate_mean(
     a1: np.ndarray,
     dt: float,
     method: Integration,
+    raw: np.ndarray | None = None,
 ) -> StepMean:
     """Integrate the nominal state over one IMU interval (no Jacobians).
 
@@ -85,6 +90,7 @@ def integrate_mean(
         a1: See ``a0``.
         dt: Interval length (s), > 0.
         method: Integration method.
+        raw: Kept in the record for the intrinsic columns (see :class:`StepMean`); None without them.
 
     Returns:
         The :class:`StepMean` record (``.new`` is the state at the end).
@@ -110,7 +116,7 @@ def integrate_mean(
         v1 = v0 + dt / 6.0 * (f0 + 4.0 * fm + f1)
         p1 = p0 + v0 * dt + dt * dt / 6.0 * (f0 + 2.0 * fm)
     new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
-    return StepMean(imu, new, method, dt, theta, R1, theta_m, Rm, am, a1)
+    return StepMean(imu, new, method, dt, theta, R1, theta_m, Rm, am, a1, raw)
 
 
 def step_transition(step: StepMean, imu_fej: ImuValues | None = None) -> np.ndarray:
@@ -181,7 +187,7 @@ def integrate_step(
 
 
 def discrete_noise(phi: np.ndarray, noise: ImuNoise, dt: float) -> np.ndarray:
-    """Discrete process noise ``Q`` (15, 15) of one interval of length ``dt`` (s).
+    """Discrete process noise ``Q`` of one interval of length ``dt`` (s), the shape of ``phi`` (d, d >= 15).
 
     White noise acts like a bias offset held over the interval with variance ``density^2 / dt`` (Kalibr), so
     its input matrix is the bias columns of ``phi`` (rows theta, p, v); the random walks add
@@ -189,7 +195,7 @@ def discrete_noise(phi: np.ndarray, noise: ImuNoise, dt: float) -> np.ndarray:
     """
     Bg = phi[:9, BG : BG + 3]
     Ba = phi[:9, BA : BA + 3]
-    Q = np.zeros((IMU_DIM, IMU_DIM))
+    Q = np.zeros(phi.shape)  # (15 + intrinsics, same): the intrinsic blocks take no process noise
     Q[:9, :9] = (noise.gyro_noise_density_rad_s_sqrthz**2 / dt) * (Bg @ Bg.T) + (
         noise.accel_noise_density_m_s2_sqrthz**2 / dt
     ) * (Ba @ Ba.T)
@@ -255,11 +261,12 @@ def transition_batch(
     return phi
 
 
-def step_transitions(steps: list[StepMean]) -> np.ndarray:
+def step_transitions(steps: list[StepMean], intr: ImuIntrinsics | None = None) -> np.ndarray:
     """:func:`step_transition` (plain Jacobians) of many intervals of one method at once, (m, 15, 15).
 
     Equal to the per-interval matrices to round-off (the stacked Rodrigues and products are the same
-    formulas; ``tests/test_imu_prediction.py``).
+    formulas; ``tests/test_imu_prediction.py``). With ``intr`` (the steps then carry ``raw``): the
+    transitions extended by the intrinsic blocks (:func:`extend_transition`), (m, 15 + intr.dim, same).
     """
     method = steps[0].method
     dt = np.array([s.dt for s in steps])
@@ -269,18 +276,100 @@ def step_transitions(steps: list[StepMean]) -> np.ndarray:
     p1 = np.array([s.new.p_WB for s in steps])
     fej = (R0, np.array([s.start.v_WB for s in steps]), np.array([s.start.p_WB for s in steps]))
     m = len(steps)
+    rk4 = None
     if method == Integration.DISCRETE:
         Jr = right_jacobian_so3_batch(np.array([s.theta for s in steps]))
-        return transition_batch(method, dt, R0, R1, Jr, v1, p1, fej)
-    # One Rodrigues call for the end and mid-interval angles together.
-    Jr_both = right_jacobian_so3_batch(np.array([s.theta for s in steps] + [s.theta_m for s in steps]))
-    rk4 = (
-        np.array([s.Rm for s in steps]),
-        np.array([s.am for s in steps]),
-        np.array([s.a1 for s in steps]),
-        Jr_both[m:],
-    )
-    return transition_batch(method, dt, R0, R1, Jr_both[:m], v1, p1, fej, rk4)
+    else:
+        # One Rodrigues call for the end and mid-interval angles together.
+        Jr_both = right_jacobian_so3_batch(np.array([s.theta for s in steps] + [s.theta_m for s in steps]))
+        Jr = Jr_both[:m]
+        rk4 = (
+            np.array([s.Rm for s in steps]),
+            np.array([s.am for s in steps]),
+            np.array([s.a1 for s in steps]),
+            Jr_both[m:],
+        )
+    phi = transition_batch(method, dt, R0, R1, Jr, v1, p1, fej, rk4)
+    if intr is None:
+        return phi
+    raw = np.array([s.raw for s in steps])
+    return extend_transition(phi, intrinsic_columns(method, dt, R0, R1, Jr, rk4, raw, intr), intr)
+
+
+def intrinsic_columns(
+    method: Integration,
+    dt: np.ndarray,
+    R0: np.ndarray,
+    R1: np.ndarray,
+    Jr: np.ndarray,
+    rk4: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+    raw: np.ndarray,
+    intr: ImuIntrinsics,
+) -> np.ndarray:
+    """Transition columns of the estimated intrinsic blocks, shape (m, 15, intr.dim).
+
+    The chain rule through the corrected readings (:mod:`viotb.vio.imu_intrinsics`): at the interval ends
+    ``dw_j = H_j dT_g`` and ``da_j = A_j dT_a`` with ``H_j = kron(I, (w_mj - b_g)^T)``. The rotation vectors
+    are linear in the rates, ``theta = dt (w_0 + w_1) / 2`` and (RK4) ``theta_m = dt (3 w_0 + w_1) / 8``, so
+    ``d theta = G_1 dT_g``, ``d theta_m = G_m dT_g``; the attitude error is ``Jr(theta) d theta`` and each RK4
+    stage ``f = R a + g_W`` moves by ``-R [a]x Jr d theta`` (gyro) or ``R da`` (accel); the stages are then
+    summed with the integrator's own weights (``v: dt/6 (f0 + 4 fm + f1)``, ``p: dt^2/6 (f0 + 2 fm)``;
+    DISCRETE holds ``R_0`` and the mean force). The bias columns are the special case ``H_j = -I``.
+
+    Args:
+        method: Integration method.
+        dt: Interval lengths (s), shape (m,).
+        R0: Start orientations, shape (m, 3, 3); ``R1`` the end orientations.
+        R1: See ``R0``.
+        Jr: Right Jacobians of the intervals' rotation vectors, shape (m, 3, 3).
+        rk4: RK4 only: ``(Rm, am, a1, Jrm)`` as :func:`transition_batch` takes them (corrected forces).
+        raw: Bias-removed raw readings ``[w_m0, w_m1, a_m0, a_m1] - b`` per interval, shape (m, 4, 3).
+        intr: The intrinsics (which blocks, in order).
+    """
+    m = dt.shape[0]
+    dt3 = dt[:, None, None]
+    cols = np.zeros((m, IMU_DIM, intr.dim))
+    k = 0
+    if intr.gyro:
+        H0, H1 = input_jacobian(raw[:, 0]), input_jacobian(raw[:, 1])
+        G1 = 0.5 * dt3 * (H0 + H1)
+        cols[:, THETA : THETA + 3, k : k + 9] = Jr @ G1
+        if method == Integration.RK4:
+            Rm, am, a1, Jrm = rk4
+            Fm = -(Rm @ skew_batch(am) @ Jrm) @ (dt3 * (0.375 * H0 + 0.125 * H1))
+            F1 = -(R1 @ skew_batch(a1) @ Jr) @ G1
+            cols[:, VEL : VEL + 3, k : k + 9] = dt3 / 6.0 * (4.0 * Fm + F1)
+            cols[:, POS : POS + 3, k : k + 9] = dt3 * dt3 / 6.0 * (2.0 * Fm)
+        k += 9
+    if intr.accel:
+        A0, A1 = input_jacobian(raw[:, 2]), input_jacobian(raw[:, 3])
+        Am = 0.5 * (A0 + A1)
+        if method == Integration.DISCRETE:
+            cols[:, VEL : VEL + 3, k : k + 9] = dt3 * (R0 @ Am)
+            cols[:, POS : POS + 3, k : k + 9] = 0.5 * dt3 * dt3 * (R0 @ Am)
+        else:
+            Rm = rk4[0]
+            cols[:, VEL : VEL + 3, k : k + 9] = dt3 / 6.0 * (R0 @ A0 + 4.0 * Rm @ Am + R1 @ A1)
+            cols[:, POS : POS + 3, k : k + 9] = dt3 * dt3 / 6.0 * (R0 @ A0 + 2.0 * Rm @ Am)
+    return cols
+
+
+def extend_transition(phi: np.ndarray, cols: np.ndarray, intr: ImuIntrinsics) -> np.ndarray:
+    """``[[Phi', C], [0, I]]`` over ``[imu, intrinsics]``, shape (m, 15 + n, 15 + n).
+
+    ``Phi'`` is ``phi`` (m, 15, 15), built with the corrected readings, with the bias columns of the
+    attitude, position and velocity rows times ``T_g`` / ``T_a`` (``dw = -T_g db_g``); ``C`` the
+    :func:`intrinsic_columns` (m, 15, n); the intrinsics are constant.
+    """
+    m, n = phi.shape[0], intr.dim
+    d = IMU_DIM + n
+    ext = np.zeros((m, d, d))
+    ext[:, :IMU_DIM, :IMU_DIM] = phi
+    ext[:, :9, BG : BG + 3] = phi[:, :9, BG : BG + 3] @ intr.T_g
+    ext[:, :9, BA : BA + 3] = phi[:, :9, BA : BA + 3] @ intr.T_a
+    ext[:, :IMU_DIM, IMU_DIM:] = cols
+    ext.reshape(m, -1)[:, (d + 1) * IMU_DIM :: d + 1] = 1.0
+    return ext
 
 
 def integrate_batch(
@@ -312,6 +401,24 @@ def integrate_batch(
 
     Returns:
         ``(state at the end, phi (m, 15, 15))``, ``phi[k]`` the transition of interval k.
+    """
+    new, phi, _ = integrate_batch_parts(imu, w0, w1, a0, a1, dt, method, imu_fej)
+    return new, phi
+
+
+def integrate_batch_parts(
+    imu: ImuValues,
+    w0: np.ndarray,
+    w1: np.ndarray,
+    a0: np.ndarray,
+    a1: np.ndarray,
+    dt: np.ndarray,
+    method: Integration,
+    imu_fej: ImuValues | None = None,
+) -> tuple[ImuValues, np.ndarray, tuple]:
+    """:func:`integrate_batch` (the same arguments) that also returns ``(R0, R1, Jr, rk4)``.
+
+    Those are what :func:`intrinsic_columns` takes (``rk4`` None for DISCRETE).
     """
     g = gravity_W()
     m = dt.shape[0]
@@ -361,11 +468,11 @@ def integrate_batch(
     R0f[0], v0f[0], p0f[0] = fej.R_WB, fej.v_WB, fej.p_WB
     phi = transition_batch(method, dt, R0, R1, Jr, v[1:], p[1:], (R0f, v0f, p0f), rk4)
     new = ImuValues(R[m].copy(), p[m], v[m], imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
-    return new, phi
+    return new, phi, (R0, R1, Jr, rk4)
 
 
 def discrete_noise_batch(phi: np.ndarray, noise: ImuNoise, dt: np.ndarray) -> np.ndarray:
-    """Stacked :func:`discrete_noise`: ``phi`` (m, 15, 15), ``dt`` (m,) s -> ``Q`` (m, 15, 15)."""
+    """Stacked :func:`discrete_noise`: ``phi`` (m, d, d), ``dt`` (m,) s -> ``Q`` (m, d, d), d >= 15."""
     Bg = phi[:, :9, BG : BG + 3]
     Ba = phi[:, :9, BA : BA + 3]
     s_g = (noise.gyro_noise_density_rad_s_sqrthz**2 / dt)[:, None, None]

@@ -21,6 +21,7 @@ intervals are batched: ``tests/test_imu_prediction.py``).
 from __future__ import annotations
 
 import numpy as np
+from viotb.vio.imu_intrinsics import ImuIntrinsics
 from viotb.vio.propagator import (
     Propagator,
     StepMean,
@@ -40,12 +41,20 @@ class PredictionChain:
         version: The filter's version counter (the owner starts a new chain when it changes).
         t_s: Time (s, IMU clock) of the filter state.
         imu: The filter's IMU state at ``t_s`` (not modified).
-        P_imu: Its IMU covariance block, shape (15, 15) (copied).
+        P_imu: Its IMU covariance block, shape (15, 15), or with online intrinsics that of
+            ``[imu, intrinsics]``, shape (15 + n, 15 + n) (copied).
         propagator: The filter's propagator (its IMU buffer and noise).
+        intrinsics: The filter's online IMU intrinsics (copied), or None.
     """
 
     def __init__(
-        self, version: int, t_s: float, imu: ImuValues, P_imu: np.ndarray, propagator: Propagator
+        self,
+        version: int,
+        t_s: float,
+        imu: ImuValues,
+        P_imu: np.ndarray,
+        propagator: Propagator,
+        intrinsics: ImuIntrinsics | None = None,
     ) -> None:
         """Start an empty chain at the filter state."""
         self.version = version
@@ -54,6 +63,10 @@ class PredictionChain:
         self._vals = imu
         self._P = np.array(P_imu, dtype=float)
         self._propagator = propagator
+        self._intr = None if intrinsics is None else intrinsics.copy()
+        d = IMU_DIM + (0 if intrinsics is None else intrinsics.dim)
+        if self._P.shape != (d, d):
+            raise ValueError(f"PredictionChain: P_imu has shape {self._P.shape}, expected ({d}, {d})")
         self._links: list[StepMean | tuple[np.ndarray, np.ndarray]] = []
         self._totals: list[tuple[np.ndarray, np.ndarray]] = []
         self._covs: dict[int, np.ndarray] = {}
@@ -74,7 +87,7 @@ class PredictionChain:
             return len(self._links) - 1, self._vals
         if self._links and t_s < self.t_s:
             raise ValueError(f"PredictionChain.advance: t_s={t_s} is before the newest prediction {self.t_s}")
-        vals, link = self._propagator.predict_mean(self._vals, self.t_s, t_s)
+        vals, link = self._propagator.predict_mean(self._vals, self.t_s, t_s, self._intr)
         self._links.append(link)
         self._vals = vals
         self.t_s = max(float(t_s), self.t_s)
@@ -88,7 +101,7 @@ class PredictionChain:
                 raise IndexError(f"PredictionChain.cov: no prediction {index} (have {len(self._links)})")
             self._build_totals()
             phi_tot, q_tot = self._totals[index]
-            cov = phi_tot @ self._P @ phi_tot.T + q_tot
+            cov = (phi_tot @ self._P @ phi_tot.T + q_tot)[:IMU_DIM, :IMU_DIM]
             cov = self._covs[index] = 0.5 * (cov + cov.T)
         return cov
 
@@ -101,17 +114,18 @@ class PredictionChain:
         steps = [link for link in pending if isinstance(link, StepMean)]
         noise = self._propagator.noise
         built: list[tuple[np.ndarray, np.ndarray]] = []
-        if len(steps) == 1:  # the per-tick read: the eager prediction's own functions
+        if len(steps) == 1 and self._intr is None:  # the per-tick read: the eager prediction's functions
             phi = step_transition(steps[0])
             built = [(phi, discrete_noise(phi, noise, steps[0].dt))]
         elif steps:
-            phis = step_transitions(steps)
+            phis = step_transitions(steps, self._intr)
             qs = discrete_noise_batch(phis, noise, np.array([s.dt for s in steps]))
             built = list(zip(phis, qs, strict=True))
         if self._totals:
             phi_tot, q_tot = self._totals[-1]
         else:
-            phi_tot, q_tot = np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM))
+            d = self._P.shape[0]
+            phi_tot, q_tot = np.eye(d), np.zeros((d, d))
         k = 0
         for link in pending:
             if isinstance(link, StepMean):

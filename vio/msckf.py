@@ -23,6 +23,7 @@ from viotb.vio.camera import CameraCalibration
 from viotb.vio.feature_database import FeatureDatabase
 from viotb.vio.frontend import FrontEnd, Tracks, make_frontend
 from viotb.vio.frontend_stereo import make_stereo_frontend
+from viotb.vio.imu_intrinsics import ImuIntrinsics
 from viotb.vio.imu_prediction import LazyCovarianceEstimate, PredictionChain
 from viotb.vio.initialization import InertialInitializer, init_params_for
 from viotb.vio.keyframing import KeyframeSelector
@@ -103,6 +104,9 @@ class MsckfEstimator:
                 "MsckfParams.update_linearization must be 'current_oc', 'current' or 'first_estimates', "
                 f"got {p.update_linearization!r}"
             )
+        ImuIntrinsics.from_choice(p.imu_intrinsics)  # ValueError naming the field on a bad choice
+        if not (np.isfinite(p.imu_intrinsic_sigma) and p.imu_intrinsic_sigma > 0.0):
+            raise ValueError(f"MsckfParams.imu_intrinsic_sigma must be > 0, got {p.imu_intrinsic_sigma}")
         if frontend is None:
             mono = make_frontend(p.frontend, calib.camera, p.klt, "MsckfParams")
             frontend = make_stereo_frontend(mono, calib, calib_right, p.stereo)
@@ -142,8 +146,19 @@ class MsckfEstimator:
         if p.estimate_extrinsics:
             ext_cov = np.diag([p.extrinsic_sigma_rad**2] * 3 + [p.extrinsic_sigma_m**2] * 3)
         td_var = p.time_offset_sigma_s**2 if p.estimate_time_offset else None
+        intr = ImuIntrinsics.from_choice(p.imu_intrinsics)
+        intr_cov = None if intr is None else np.eye(intr.dim) * p.imu_intrinsic_sigma**2
         self.state = State(
-            t_s, vals, cov, self.calib.R_BC, self.calib.p_BC, self.calib.time_offset_s, ext_cov, td_var
+            t_s,
+            vals,
+            cov,
+            self.calib.R_BC,
+            self.calib.p_BC,
+            self.calib.time_offset_s,
+            ext_cov,
+            td_var,
+            intr,
+            intr_cov,
         )
         self._version += 1
         self._health = HealthStatus(t_s=t_s, initialized=True)
@@ -191,14 +206,16 @@ class MsckfEstimator:
         t_new = self._last_imu.t_s if self._last_imu is not None else st.t_s
         chain = self._chain
         if chain is None or chain.version != self._version or chain.t_s > t_new:
-            imu_sl = st.block(IMU_BLOCK).indices
+            d = st.propagated_dim  # the IMU block and the online intrinsics after it
             chain = self._chain = PredictionChain(
-                self._version, st.t_s, st.imu, st.cov[imu_sl, imu_sl], self.propagator
+                self._version, st.t_s, st.imu, st.cov[:d, :d], self.propagator, st.intrinsics
             )
         index, vals = chain.advance(t_new)
         omega = np.zeros(3)
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
+            if st.intrinsics is not None:
+                omega = st.intrinsics.T_g @ omega
         return LazyCovarianceEstimate(
             chain.t_s,
             vals.R_WB.copy(),

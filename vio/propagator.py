@@ -21,6 +21,11 @@ derivative of the chosen integrator, written in the first-estimates form of open
 which equals the plain Jacobian when the first estimates equal the current values and maps the yaw/position
 null space at the old first estimates exactly onto the one at the new values.
 
+With online IMU intrinsics (:mod:`viotb.vio.imu_intrinsics`) the readings are ``w = T_g (gyro - b_g)``,
+``a = T_a (accel - b_a)``, the bias columns are the above times ``T_g`` / ``T_a``, and ``Phi`` gains the
+columns of the intrinsic blocks (:func:`~viotb.vio.imu_integration.intrinsic_columns`); the state's
+``[imu, intrinsics]`` part is propagated together (:func:`~viotb.vio.state.ekf_propagate`).
+
 Noise (Kalibr densities, see DESIGN.md): white gyro/accel noise acts over an interval like a bias offset of
 variance ``density^2 / dt`` so it enters through the bias columns of ``Phi``; the random walks add
 ``density^2 dt`` to the bias blocks.
@@ -34,13 +39,17 @@ from viotb.vio.imu_integration import (
     StepMean,
     discrete_noise,
     discrete_noise_batch,
+    extend_transition,
     integrate_batch,
+    integrate_batch_parts,
     integrate_mean,
     integrate_step,
+    intrinsic_columns,
     step_transition,
     step_transitions,
     transition_batch,
 )
+from viotb.vio.imu_intrinsics import ImuIntrinsics, correct_readings
 from viotb.vio.state import (
     IMU_DIM,
     ImuValues,
@@ -188,6 +197,7 @@ def propagate_values(
     method: Integration,
     noise: ImuNoise,
     imu_fej: ImuValues | None = None,
+    intrinsics: ImuIntrinsics | None = None,
 ) -> tuple[ImuValues, np.ndarray, np.ndarray]:
     """Integrate selected readings (from :func:`select_imu_readings`) and accumulate ``Phi`` and ``Q``.
 
@@ -206,29 +216,56 @@ def propagate_values(
         method: Integration method.
         noise: IMU noise densities.
         imu_fej: First estimates at ``t_s[0]`` (None: plain Jacobians).
+        intrinsics: Online IMU intrinsics (:mod:`viotb.vio.imu_intrinsics`): the readings are corrected
+            with them and ``Phi``, ``Q`` cover ``[imu, intrinsic blocks]``; None: neither.
 
     Returns:
-        ``(state at t_s[-1], Phi (15, 15), Q (15, 15))`` over the whole span.
+        ``(state at t_s[-1], Phi (d, d), Q (d, d))`` over the whole span, ``d = 15 + intrinsics.dim``.
     """
-    w = gyro - imu.gyro_bias_rad_s
-    a = accel - imu.accel_bias_m_s2
+    w, a = correct_readings(intrinsics, gyro, accel, imu.gyro_bias_rad_s, imu.accel_bias_m_s2)
     dt = np.diff(t_s)
     k = np.flatnonzero(dt > 0.0)  # zero-length intervals (duplicate end points) are skipped
+    d = IMU_DIM + (0 if intrinsics is None else intrinsics.dim)
     if k.size == 0:
-        return imu.copy(), np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM))
-    if k.size == 1:
+        return imu.copy(), np.eye(d), np.zeros((d, d))
+    if k.size == 1 and intrinsics is None:
         # One interval (the per-control-tick prediction): the scalar step has less array overhead (1.7x).
         j, dt_j = int(k[0]), float(dt[k[0]])
         cur, phi1 = integrate_step(imu, w[j], w[j + 1], a[j], a[j + 1], dt_j, method, imu_fej)
         return cur, phi1, discrete_noise(phi1, noise, dt_j)
     dt = dt[k]
-    cur, phi = integrate_batch(imu, w[k], w[k + 1], a[k], a[k + 1], dt, method, imu_fej)
+    cur, phi, parts = integrate_batch_parts(imu, w[k], w[k + 1], a[k], a[k + 1], dt, method, imu_fej)
+    if intrinsics is not None:
+        wr, ar = gyro - imu.gyro_bias_rad_s, accel - imu.accel_bias_m_s2
+        raw = np.stack([wr[k], wr[k + 1], ar[k], ar[k + 1]], axis=1)
+        phi = extend_transition(phi, intrinsic_columns(method, dt, *parts, raw, intrinsics), intrinsics)
+        return cur, *_chain_extended(phi, discrete_noise_batch(phi[:, :IMU_DIM, :IMU_DIM], noise, dt))
     q = discrete_noise_batch(phi, noise, dt)
     phi_tot, q_tot = phi[0], q[0]
     for j in range(1, k.size):
         phi_tot = phi[j] @ phi_tot
         q_tot = phi[j] @ q_tot @ phi[j].T + q[j]
     return cur, phi_tot.copy(), q_tot.copy()
+
+
+def _chain_extended(phi: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The span's ``(Phi, Q)`` (d, d) from the intervals' ``[[A, C], [0, I]]`` (m, d, d) and Q (m, 15, 15).
+
+    The intrinsic rows stay ``[0, I]`` and take no noise, so only ``A`` (15, 15), ``C`` (15, n) and the
+    IMU noise are chained: ``C <- A_k C + C_k``, ``A <- A_k A``, ``Q <- A_k Q A_k^T + Q_k`` (the full
+    product's blocks, in the same order).
+    """
+    A, C = phi[:, :IMU_DIM, :IMU_DIM], phi[:, :IMU_DIM, IMU_DIM:]
+    a_tot, c_tot, q_tot = A[0], C[0], q[0]
+    for j in range(1, phi.shape[0]):
+        c_tot = A[j] @ c_tot + C[j]
+        a_tot = A[j] @ a_tot
+        q_tot = A[j] @ q_tot @ A[j].T + q[j]
+    d = phi.shape[1]
+    phi_tot, q_out = np.eye(d), np.zeros((d, d))
+    phi_tot[:IMU_DIM, :IMU_DIM], phi_tot[:IMU_DIM, IMU_DIM:] = a_tot, c_tot
+    q_out[:IMU_DIM, :IMU_DIM] = q_tot
+    return phi_tot, q_out
 
 
 class Propagator:
@@ -268,11 +305,12 @@ class Propagator:
         return select_imu_readings(t, g, a, t0_s, t1_s)
 
     def omega_at(self, state: State, t_s: float) -> np.ndarray:
-        """Bias-corrected angular rate (rad/s) in B at ``t_s``, shape (3,)."""
+        """Corrected angular rate (rad/s) in B at ``t_s`` (bias and online intrinsics), shape (3,)."""
         t, g, _ = self.buffer.arrays()
         if len(t) == 0:
             return np.zeros(3)
-        return interpolate_readings(t, g, t_s) - state.imu.gyro_bias_rad_s
+        w = interpolate_readings(t, g, t_s) - state.imu.gyro_bias_rad_s
+        return w if state.intrinsics is None else state.intrinsics.T_g @ w
 
     def propagate(self, state: State, t_s: float) -> None:
         """Propagate the state and covariance to ``t_s`` (IMU clock); no-op when ``t_s <= state.t_s``."""
@@ -280,7 +318,7 @@ class Propagator:
             return
         t, g, a = self.readings(state.t_s, t_s)
         fej = state.imu_fej if self.use_fej else None
-        new, phi, q = propagate_values(state.imu, t, g, a, self.method, self.noise, fej)
+        new, phi, q = propagate_values(state.imu, t, g, a, self.method, self.noise, fej, state.intrinsics)
         state.imu = new
         state.t_s = float(t_s)
         ekf_propagate(state, phi, q)
@@ -288,20 +326,22 @@ class Propagator:
         self.buffer.clean_older_than(state.t_s - self.keep_history_s)
 
     def predict(
-        self, start_imu: ImuValues, start_t_s: float, t_s: float
+        self, start_imu: ImuValues, start_t_s: float, t_s: float, intrinsics: ImuIntrinsics | None = None
     ) -> tuple[ImuValues, np.ndarray, np.ndarray]:
         """Propagate nominal values from ``start_t_s`` to ``t_s`` without touching any state.
 
         Returns:
-            ``(values at t_s, Phi (15, 15), Q (15, 15))``; identity/zero when ``t_s <= start_t_s``.
+            ``(values at t_s, Phi (d, d), Q (d, d))`` (``d`` as :func:`propagate_values`); identity/zero
+            when ``t_s <= start_t_s``.
         """
+        d = IMU_DIM + (0 if intrinsics is None else intrinsics.dim)
         if t_s <= start_t_s or len(self.buffer) == 0:
-            return start_imu.copy(), np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM))
+            return start_imu.copy(), np.eye(d), np.zeros((d, d))
         t, g, a = select_imu_readings(*self.buffer.arrays(), start_t_s, t_s)
-        return propagate_values(start_imu, t, g, a, self.method, self.noise)
+        return propagate_values(start_imu, t, g, a, self.method, self.noise, None, intrinsics)
 
     def predict_mean(
-        self, start_imu: ImuValues, start_t_s: float, t_s: float
+        self, start_imu: ImuValues, start_t_s: float, t_s: float, intrinsics: ImuIntrinsics | None = None
     ) -> tuple[ImuValues, StepMean | tuple[np.ndarray, np.ndarray]]:
         """:meth:`predict` that leaves a single interval's ``Phi`` and ``Q`` to be built when needed.
 
@@ -315,26 +355,37 @@ class Propagator:
         """
         n = len(self.buffer)
         if t_s <= start_t_s or n == 0:
-            return start_imu.copy(), (np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM)))
+            d = IMU_DIM + (0 if intrinsics is None else intrinsics.dim)
+            return start_imu.copy(), (np.eye(d), np.zeros((d, d)))
         t, g, a = self.buffer.arrays()
         if n >= 2 and t[n - 2] == start_t_s and t[n - 1] == t_s:  # one interval (times increase)
-            step = self._interval_mean(start_imu, t, g, a, n - 2)
+            step = self._interval_mean(start_imu, t, g, a, n - 2, intrinsics)
             return step.new, step
         t, g, a = select_imu_readings(t, g, a, start_t_s, t_s)
         k = np.flatnonzero(np.diff(t) > 0.0)
         if k.size != 1:
-            vals, phi, q = propagate_values(start_imu, t, g, a, self.method, self.noise)
+            vals, phi, q = propagate_values(start_imu, t, g, a, self.method, self.noise, None, intrinsics)
             return vals, (phi, q)
-        step = self._interval_mean(start_imu, t, g, a, int(k[0]))
+        step = self._interval_mean(start_imu, t, g, a, int(k[0]), intrinsics)
         return step.new, step
 
     def _interval_mean(
-        self, start_imu: ImuValues, t: np.ndarray, g: np.ndarray, a: np.ndarray, j: int
+        self,
+        start_imu: ImuValues,
+        t: np.ndarray,
+        g: np.ndarray,
+        a: np.ndarray,
+        j: int,
+        intrinsics: ImuIntrinsics | None = None,
     ) -> StepMean:
         """:func:`integrate_mean` over readings ``j``, ``j + 1``: ``t`` (n,) s, raw ``g``, ``a`` (n, 3)."""
-        w = g[j : j + 2] - start_imu.gyro_bias_rad_s
-        f = a[j : j + 2] - start_imu.accel_bias_m_s2
-        return integrate_mean(start_imu, w[0], w[1], f[0], f[1], float(t[j + 1] - t[j]), self.method)
+        b_g, b_a = start_imu.gyro_bias_rad_s, start_imu.accel_bias_m_s2
+        w, f = correct_readings(intrinsics, g[j : j + 2], a[j : j + 2], b_g, b_a)
+        raw = None
+        if intrinsics is not None:
+            raw = np.vstack([g[j : j + 2] - b_g, a[j : j + 2] - b_a])
+        dt = float(t[j + 1] - t[j])
+        return integrate_mean(start_imu, w[0], w[1], f[0], f[1], dt, self.method, raw)
 
     def propagate_and_clone(self, state: State, t_cam_s: float) -> None:
         """Propagate to the IMU time ``t_cam_s + time_offset`` and clone the pose keyed by ``t_cam_s``."""

@@ -1,15 +1,17 @@
 """Filter state with named covariance blocks (the open_vins ``Type`` / ``StateHelper`` idea).
 
-The error state is ordered by blocks: ``imu`` (15) first, then the optional calibration blocks
-``extrinsic`` (6: ``[dphi_BC, dp_BC]``) and ``time_offset`` (1), then one 6-dof block per pose clone
-(``[dtheta, dp]``, oldest first) and one 3-dof block per SLAM landmark (``slam@<id>``: ``dp_f`` in W,
-:mod:`viotb.vio.slam_features`), in the order they were added. Rotations use the right (body-frame)
-perturbation ``R = R_hat Exp(dtheta)``; every other quantity is additive. The IMU block is ordered
-``[dtheta, dp, dv, dbg, dba]`` as in :class:`viotb.vio.types.StateEstimate`.
+The error state is ordered by blocks: ``imu`` (15) first, then the optional IMU intrinsics
+``imu_intr_gyro`` / ``imu_intr_accel`` (9 each, :mod:`viotb.vio.imu_intrinsics`; propagated with the IMU
+block), the optional calibration blocks ``extrinsic`` (6: ``[dphi_BC, dp_BC]``) and ``time_offset`` (1),
+then one 6-dof block per pose clone (``[dtheta, dp]``, oldest first) and one 3-dof block per SLAM
+landmark (``slam@<id>``: ``dp_f`` in W, :mod:`viotb.vio.slam_features`), in the order they were added.
+Rotations use the right (body-frame) perturbation ``R = R_hat Exp(dtheta)``; every other quantity is
+additive. The IMU block is ordered ``[dtheta, dp, dv, dbg, dba]`` (:class:`viotb.vio.types.StateEstimate`).
 
 The covariance is owned by :class:`State` and changes only through the module functions below
 (``ekf_propagate``, ``ekf_update``, ``augment_clone``, ``marginalize``), as open_vins' ``StateHelper`` is the
 only friend of its ``State``. Other modules read it through :func:`marginal_covariance` and named blocks.
+The blocks' nominal values are the records of :mod:`viotb.vio.state_values` (re-exported here).
 
 First-estimate Jacobians (FEJ; Huang, Mourikis, Roumeliotis, "A First-Estimates Jacobian EKF for improving
 SLAM consistency", ISER 2008 / IJRR 2010; open_vins ``fej.dox``): the IMU keeps the values it had right after
@@ -25,7 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
+from viotb.vio.imu_intrinsics import ImuIntrinsics
 from viotb.vio.lie import exp_so3, exp_so3_batch
+from viotb.vio.state_values import ClonePose, ImuValues, SlamLandmark
 
 IMU_DIM = 15
 CLONE_DIM = 6
@@ -58,75 +62,6 @@ class Block:
         return slice(self.offset, self.offset + self.size)
 
 
-@dataclass
-class ImuValues:
-    """Nominal IMU state (mutable arrays, written only by this module and the propagator).
-
-    Attributes:
-        R_WB: Orientation, shape (3, 3).
-        p_WB: Position (m) in W, shape (3,).
-        v_WB: Velocity (m/s) in W, shape (3,).
-        gyro_bias_rad_s: shape (3,).
-        accel_bias_m_s2: shape (3,).
-    """
-
-    R_WB: np.ndarray
-    p_WB: np.ndarray
-    v_WB: np.ndarray
-    gyro_bias_rad_s: np.ndarray
-    accel_bias_m_s2: np.ndarray
-
-    def copy(self) -> ImuValues:
-        """Deep copy."""
-        return ImuValues(
-            self.R_WB.copy(),
-            self.p_WB.copy(),
-            self.v_WB.copy(),
-            self.gyro_bias_rad_s.copy(),
-            self.accel_bias_m_s2.copy(),
-        )
-
-
-@dataclass
-class ClonePose:
-    """A stochastic clone of the IMU pose at a camera time.
-
-    Attributes:
-        t_s: Camera timestamp (s) of the clone (its key).
-        R_WB: Current estimate, shape (3, 3).
-        p_WB: Current estimate (m), shape (3,).
-        R_WB_fej: First estimate (value when cloned), shape (3, 3).
-        p_WB_fej: First estimate (m), shape (3,).
-    """
-
-    t_s: float
-    R_WB: np.ndarray
-    p_WB: np.ndarray
-    R_WB_fej: np.ndarray
-    p_WB_fej: np.ndarray
-
-
-@dataclass
-class SlamLandmark:
-    """A persistent landmark: block ``[dp_f (3), db (2 B)]`` (:mod:`viotb.vio.slam_features`).
-
-    Attributes:
-        feature_id: Track id of the front end (its key).
-        p_W: Current estimate (m) in W, shape (3,).
-        p_W_fej: First estimate (m), the value it was initialized with, shape (3,).
-        track_bias: Walk of the track error per camera (normalized coordinates; KLT), shape (B, 2).
-        last_xy: Each camera's latest observation (normalized; NaN: unseen), shape (B, 2).
-        gate_failures: Consecutive frames its observation failed the chi-square gate.
-    """
-
-    feature_id: int
-    p_W: np.ndarray
-    p_W_fej: np.ndarray
-    track_bias: np.ndarray
-    last_xy: np.ndarray
-    gate_failures: int = 0
-
-
 class State:
     """IMU state, optional calibration and a window of pose clones, with their joint covariance.
 
@@ -139,6 +74,8 @@ class State:
         time_offset_s: ``t_imu = t_cam + time_offset_s``.
         extrinsic_cov: If given, shape (6, 6): the extrinsic is estimated online with this prior.
         time_offset_var_s2: If given (s^2): the time offset is estimated online with this prior variance.
+        intrinsics: If given, the IMU intrinsics (copied); its estimated blocks get ``intrinsics_cov``.
+        intrinsics_cov: Prior covariance of the intrinsic blocks, shape (intrinsics.dim, intrinsics.dim).
     """
 
     def __init__(
@@ -151,6 +88,8 @@ class State:
         time_offset_s: float = 0.0,
         extrinsic_cov: np.ndarray | None = None,
         time_offset_var_s2: float | None = None,
+        intrinsics: ImuIntrinsics | None = None,
+        intrinsics_cov: np.ndarray | None = None,
     ) -> None:
         """Create the state with the IMU block and the requested calibration blocks."""
         imu_cov = np.asarray(imu_cov, dtype=float)
@@ -168,6 +107,11 @@ class State:
         self.landmarks: dict[int, SlamLandmark] = {}
         self._blocks: dict[str, Block] = {IMU_BLOCK: Block(IMU_BLOCK, 0, IMU_DIM)}
         diag = [imu_cov]
+        self.intrinsics = None if intrinsics is None else intrinsics.copy()
+        if intrinsics is not None and intrinsics.dim:
+            for name in intrinsics.block_names():
+                self._blocks[name] = Block(name, self._dim_blocks(), 9)
+            diag.append(np.asarray(intrinsics_cov, dtype=float).reshape(intrinsics.dim, intrinsics.dim))
         if extrinsic_cov is not None:
             self._blocks[EXTRINSIC_BLOCK] = Block(EXTRINSIC_BLOCK, self._dim_blocks(), EXTRINSIC_DIM)
             diag.append(np.asarray(extrinsic_cov, dtype=float).reshape(EXTRINSIC_DIM, EXTRINSIC_DIM))
@@ -184,6 +128,11 @@ class State:
     def dim(self) -> int:
         """Error-state dimension."""
         return self._cov.shape[0]
+
+    @property
+    def propagated_dim(self) -> int:
+        """Size of the leading ``[imu, intrinsics]`` part that the IMU propagation transforms."""
+        return IMU_DIM + (0 if self.intrinsics is None else self.intrinsics.dim)
 
     @property
     def cov(self) -> np.ndarray:
@@ -235,7 +184,8 @@ class State:
         """True when every value and the covariance are finite."""
         imu = self.imu
         vals = [imu.R_WB, imu.p_WB, imu.v_WB, imu.gyro_bias_rad_s, imu.accel_bias_m_s2]
-        return bool(all(np.all(np.isfinite(v)) for v in vals) and np.all(np.isfinite(self._cov)))
+        intr_ok = self.intrinsics is None or self.intrinsics.is_finite()
+        return bool(all(np.all(np.isfinite(v)) for v in vals) and np.all(np.isfinite(self._cov)) and intr_ok)
 
     # Internal helpers used by the module functions below ------------------------------------------------
     def _set_cov(self, cov: np.ndarray) -> None:
@@ -249,6 +199,8 @@ class State:
         imu.v_WB = imu.v_WB + dx[VEL : VEL + 3]
         imu.gyro_bias_rad_s = imu.gyro_bias_rad_s + dx[BG : BG + 3]
         imu.accel_bias_m_s2 = imu.accel_bias_m_s2 + dx[BA : BA + 3]
+        if self.intrinsics is not None:
+            self.intrinsics.boxplus(dx[IMU_DIM : self.propagated_dim])
         if EXTRINSIC_BLOCK in self._blocks:
             o = self._blocks[EXTRINSIC_BLOCK].offset
             self.R_BC = self.R_BC @ exp_so3(dx[o : o + 3])
@@ -276,15 +228,18 @@ def marginal_covariance(state: State, blocks: list[Block] | tuple[Block, ...]) -
 
 
 def ekf_propagate(state: State, phi_imu: np.ndarray, q_imu: np.ndarray) -> None:
-    """Propagate the covariance with the IMU transition ``phi_imu`` (15, 15) and noise ``q_imu`` (15, 15).
+    """Propagate the covariance with the transition ``phi_imu`` and noise ``q_imu`` (d, d) of the IMU part.
 
-    ``P_II <- Phi P_II Phi^T + Q``, ``P_IX <- Phi P_IX`` (the other blocks are static; open_vins
-    ``StateHelper::EKFPropagation``).
+    ``d = state.propagated_dim`` (the IMU block and the intrinsics after it). ``P_II <- Phi P_II Phi^T + Q``,
+    ``P_IX <- Phi P_IX`` (the other blocks are static; open_vins ``StateHelper::EKFPropagation``).
     """
+    d = state.propagated_dim
+    if phi_imu.shape != (d, d) or q_imu.shape != (d, d):
+        raise ValueError(f"ekf_propagate: Phi {phi_imu.shape} / Q {q_imu.shape} must be ({d}, {d})")
     P = state._cov.copy()
-    P[:IMU_DIM, :] = phi_imu @ P[:IMU_DIM, :]
-    P[:, :IMU_DIM] = P[:, :IMU_DIM] @ phi_imu.T
-    P[:IMU_DIM, :IMU_DIM] += q_imu
+    P[:d, :] = phi_imu @ P[:d, :]
+    P[:, :d] = P[:, :d] @ phi_imu.T
+    P[:d, :d] += q_imu
     state._set_cov(P)
 
 

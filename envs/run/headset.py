@@ -67,8 +67,9 @@ class HeadsetOptions:
             scenario's (``icm42688-1khz``). ``icm42688-1khz-calibrated`` is the same part with factory-
             calibrated intrinsics (scale and misalignment residuals 10x smaller).
         gyro_noise_inflation: Factor on the gyro noise density the estimator is told (the sensor model's
-            is unchanged); see :func:`estimator_imu_noise`. The default 10 is for the uncalibrated part;
-            1 tells the estimator the sensor's own density.
+            is unchanged); see :func:`estimator_imu_noise`. None (default): the factor of
+            :func:`default_gyro_noise_inflation` (2 for an MSCKF that estimates the gyro intrinsics, as
+            :data:`HEADSET_MSCKF` does; 10 otherwise); 1 tells the estimator the sensor's own density.
         window: Window-optimizer settings (None: defaults).
         display: Display pose filter (:mod:`viotb.vio.display_pose`); None renders with the estimator's pose.
         loop: Loop closure beside the estimator (``klt`` only; :class:`FlightLoopClosure`): the pose at IMU
@@ -87,7 +88,7 @@ class HeadsetOptions:
     msckf: MsckfParams | None = None
     window: WindowParams | None = None
     imu_preset: str | None = None
-    gyro_noise_inflation: float = 10.0
+    gyro_noise_inflation: float | None = None
     display: DisplayPoseParams | None = field(default_factory=DisplayPoseParams)
     loop: LoopOptions | None = None
 
@@ -108,22 +109,46 @@ class HeadsetOptions:
 # filter weighted its cameras far below what they deliver and drifted on the IMU: the stereo look-around
 # (20 s, seeds 0 / 1 / 2) held the world to 6.6 / 9.8 / 16.7 mm, now 4.9 / 4.3 / 4.2 mm (NEES 0.34 / 0.85
 # / 1.79 -> 2.5 / 2.6 / 2.4; README "Headset tracking").
+#
+# The gyro's 3x3 scale/misalignment matrix is estimated online (``imu_intrinsics="gyro"``,
+# :mod:`viotb.vio.imu_intrinsics`, prior sigma 0.005 per entry). On the stereo KLT look-around (20 s, seeds
+# 0 / 1 / 2) the world lock / max error went from 4.9 / 11.1, 4.3 / 8.1, 4.2 / 8.5 mm (NEES 3.0 / 2.6 / 2.4,
+# 10x gyro noise, no intrinsics) to 3.6 / 6.8, 4.3 / 7.7, 3.1 / 7.3 mm (NEES 2.6 / 5.0 / 2.5, 2x gyro noise);
+# without the intrinsics the 2x noise alone gives 4.3 / 9.9 mm on seed 0 (NEES 4.2). Estimating the
+# accelerometer's matrix as well (``"gyro+accel"``) was worse (seed 1: 4.9 / 16.3 mm, drift 0.5 %).
 HEADSET_MSCKF = MsckfParams(
     keyframing=KeyframeParams(every_n_frames=1),
     pixel_sigma_px=0.05,
     klt=KltParams(track_random_walk_px2_per_px=0.0002),
+    imu_intrinsics="gyro",
 )
+
+
+def default_gyro_noise_inflation(estimator: str, msckf: MsckfParams) -> float:
+    """The gyro noise factor a headset run tells ``estimator`` when none is given (see HeadsetOptions).
+
+    10 covers the raw part's scale and misalignment errors for an estimator that does not model them
+    (:func:`estimator_imu_noise`); an MSCKF that estimates the gyro matrix needs 2 (look-around, seed 0,
+    20 s: told 1x the world lock / max error are 4.6 / 8.5 mm and the NEES 4.0, at 2x 3.6 / 6.8 mm and 2.6;
+    seed 1 at 3x 4.7 / 7.6 mm, NEES 5.1, against 4.3 / 7.7 mm, 5.0 at 2x). The remaining factor covers what
+    is still unmodeled (the accelerometer's matrix, the quantization): a tuning, measured on these seeds.
+    """
+    if estimator == "msckf" and msckf.imu_intrinsics != "none":
+        return 2.0
+    return 10.0
 
 
 def estimator_imu_noise(noise: ImuNoise, gyro_noise_inflation: float) -> ImuNoise:
     """The IMU noise the estimator is told: ``noise`` with the gyro white-noise density times the factor.
 
     The headset IMU preset (``icm42688-1khz``) draws gyro scale factors (sigma 2e-3) and axis misalignments
-    (sigma 0.1 deg) that no estimator here models. At head rates up to 3.5 rad/s they are a gyro error of
-    ~1e-2 rad/s that follows the motion, some 30 times the white noise per 1 kHz sample; told only the white
-    noise, the stereo MSCKF (four times the rows of the mono one) becomes overconfident (look-around, 8 s:
-    position NEES 8.5, 16 with a clone at every frame; 2.4 without the scale and misalignment errors). A
-    factor 10 (1e-3 rad/s/sqrtHz) makes it consistent again (NEES 2.4).
+    (sigma 0.1 deg) that only the MSCKF's online intrinsics model (:data:`HEADSET_MSCKF`). At head rates up
+    to 3.5 rad/s they are a gyro error of ~1e-2 rad/s that follows the motion, some 30 times the white
+    noise per 1 kHz sample; told only the white noise and not modeling them, the stereo MSCKF (four times
+    the rows of the mono one) becomes overconfident (look-around, 8 s: position NEES 8.5, 16 with a clone
+    at every frame; 2.4 without the scale and misalignment errors). A factor 10 (1e-3 rad/s/sqrtHz) makes
+    it consistent again (NEES 2.4); with the gyro intrinsics estimated 2 does
+    (:func:`default_gyro_noise_inflation`).
     """
     if not (np.isfinite(gyro_noise_inflation) and gyro_noise_inflation > 0.0):
         raise ValueError(f"gyro_noise_inflation must be positive, got {gyro_noise_inflation}")
@@ -305,10 +330,13 @@ def run_headset(
         msckf = replace(msckf, pixel_sigma_px=opts.sim_pixel_sigma_px)
         window = replace(window, pixel_sigma_px=opts.sim_pixel_sigma_px)
     stereo = {"calib_right": rig.calibs[1]} if opts.cameras == 2 else {}
+    inflation = opts.gyro_noise_inflation
+    if inflation is None:
+        inflation = default_gyro_noise_inflation(opts.estimator, msckf)
     est = make_estimator(
         opts.estimator,
         rig.calibs[0],
-        estimator_imu_noise(imu_params.noise, opts.gyro_noise_inflation),
+        estimator_imu_noise(imu_params.noise, inflation),
         frontend=opts.frontend,
         params=msckf,
         window_params=window,

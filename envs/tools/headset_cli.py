@@ -55,12 +55,13 @@ def headset(
         help="IMU part: icm42688-1khz (the scenario's, raw intrinsics) | icm42688-1khz-calibrated "
         "(factory-calibrated scale/misalignment) | adis16448 | bmi088 | ideal.",
     ),
-    gyro_noise_inflation: float = typer.Option(
-        10.0,
+    gyro_noise_inflation: float | None = typer.Option(
+        None,
         "--gyro-noise-inflation",
         min=1e-3,
-        help="Factor on the gyro noise density the estimator is told (10: covers the raw part's unmodeled "
-        "scale and misalignment errors; 1: the sensor's own density).",
+        help="Factor on the gyro noise density the estimator is told (default: 2 for the msckf, which "
+        "estimates the gyro's scale/misalignment online; 10 for the others, covering those errors of the "
+        "raw part; 1: the sensor's own density).",
     ),
     no_display_filter: bool = typer.Option(
         False,
