@@ -118,6 +118,16 @@ def estimates_to_trajectory(estimates: list[StateEstimate]) -> TrajectoryArrays:
     )
 
 
+def msckf_settings(params: MsckfParams | None) -> dict:
+    """The MSCKF settings a result names: the filter's pixel noise and track walk, and its IMU intrinsics."""
+    p = params if params is not None else MsckfParams()
+    return {
+        "pixel_sigma_px": p.pixel_sigma_px,
+        "track_random_walk_px2_per_px": p.klt.track_random_walk_px2_per_px,
+        "imu_intrinsics": p.imu_intrinsics,
+    }
+
+
 def evaluate_dataset(
     dataset_dir: Path,
     out_dir: Path,
@@ -172,6 +182,7 @@ def evaluate_dataset(
             "estimator": opts.estimator,
             "frontend": opts.frontend,
             "cameras": opts.cameras,
+            "msckf_settings": None if opts.estimator != "msckf" else msckf_settings(opts.msckf),
             "frames": len(ms),
             "estimated_frames": len(estimates),
             "frames_skipped_before_imu": first,

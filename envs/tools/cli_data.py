@@ -133,6 +133,22 @@ def eval_(
     calibrate: bool = typer.Option(
         False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (msckf only)."
     ),
+    imu_intrinsics: str = choice_option(
+        "none",
+        "--imu-intrinsics",
+        "IMU intrinsics choice",
+        ("none", "gyro", "gyro+accel"),
+        "Estimate the IMU's scale/misalignment matrices online (msckf only; MsckfParams.imu_intrinsics).",
+    ),
+    klt_noise: str = choice_option(
+        "default",
+        "--klt-noise",
+        "KLT noise model",
+        ("default", "render"),
+        "The filter's pixel noise: default (1 px, for any camera) or render (the KLT noise measured on this "
+        "project's renders, MsckfParams.with_render_klt_noise; msckf only, for recordings with the right "
+        "calibration).",
+    ),
     monitor: bool = typer.Option(True, "--monitor/--no-monitor", help="Run the health monitor (default on)."),
     write_report: bool = typer.Option(
         True, "--report/--no-report", help="Write PNGs and report.json into --out."
@@ -160,6 +176,22 @@ def eval_(
     check_out(out, overwrite)
     if calibrate and estimator != "msckf":
         fail(f"--calibrate needs --estimator msckf: {estimator!r} has no online calibration")
+    for flag, value, off in (
+        ("--imu-intrinsics", imu_intrinsics, "none"),
+        ("--klt-noise", klt_noise, "default"),
+    ):
+        if value != off and estimator != "msckf":
+            fail(f"{flag} {value} needs --estimator msckf, got {estimator!r}")
+    if klt_noise != "default" and frontend != "klt":
+        fail(f"--klt-noise {klt_noise} is a model of the klt front end, got --frontend {frontend}")
+    msckf = None
+    if imu_intrinsics != "none" or klt_noise != "default":
+        from dataclasses import replace
+
+        from viotb.vio.msckf_params import MsckfParams
+
+        msckf = replace(MsckfParams(), imu_intrinsics=imu_intrinsics)
+        msckf = msckf.with_render_klt_noise() if klt_noise == "render" else msckf
     try:
         from viotb.envs.run.loop_glue import loop_options
 
@@ -172,6 +204,7 @@ def eval_(
             cameras=cameras,
             monitor=monitor,
             calibrate=calibrate,
+            msckf=msckf,
             report=write_report,
             rerun=rerun,
             loop=loop,
