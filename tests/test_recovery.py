@@ -26,6 +26,7 @@ from viotb.vio.factory import make_estimator
 from viotb.vio.loop import LoopClosureParams, RigidTransform
 from viotb.vio.msckf import MsckfParams
 from viotb.vio.recovery import RecoveringEstimator, RecoveryParams
+from viotb.vio.state import IMU_BLOCK, marginal_covariance
 from viotb.vio.types import ImuSample, StateEstimate
 
 DARK_S = (6.0, 10.0)
@@ -125,6 +126,55 @@ def _coast_to_the_light(st, wait_s: float):
     dark = [f for f in st.frames if f.t_s + st.time_offset_s < DARK_S[1]]
     run = replay(rec, st.imu, dark, st.time_offset_s)
     return rec, float(run.frame_t_imu_s[-1])
+
+
+def _eager_coast(rec):
+    """The coast predicted to the newest IMU sample the former way: one span, ``Phi P Phi^T + Q`` at once."""
+    co = rec._coaster
+    st = co.state
+    t_new = co._last_imu.t_s
+    vals, phi, q = co.propagator.predict(st.imu, st.t_s, t_new)
+    P = marginal_covariance(st, [st.block(IMU_BLOCK)])
+    cov = phi @ P @ phi.T + q
+    return vals, 0.5 * (cov + cov.T)
+
+
+def test_the_coast_is_predicted_per_imu_sample_as_the_eager_span_prediction_did(dark_stream):
+    """The coaster's ``estimate()`` equals the former eager prediction over the whole span since the frame.
+
+    The coaster now predicts as the filters do (:class:`PredictionChain`: the mean per sample, the
+    covariance batched when read); against ``Phi P Phi^T + Q`` of one span: the same mean and covariance to
+    round-off, read at every sample, every third one, across frames and across a velocity fix (which
+    changes the coasted values in place: an estimate made before it and read after must not see it).
+    """
+    st = dark_stream
+    rec = RecoveringEstimator(_make(st), st.calib_given, st.noise)
+    run = replay(rec, st.imu, [f for f in st.frames if f.t_s + st.time_offset_s < 8.0], st.time_offset_s)
+    t_last = float(run.frame_t_imu_s[-1])  # coasting since 6.5 s, in the dark until 10 s
+    i = int(np.searchsorted(st.imu.t_s, t_last, side="right"))
+    frames = iter([f for f in st.frames if f.t_s + st.time_offset_s > t_last])
+    nxt = next(frames)
+    ests, refs, n_frames = [], [], 0
+    for k in range(i, i + 60):
+        while nxt.t_s + st.time_offset_s < st.imu.t_s[k]:
+            rec.feed_camera(nxt)
+            n_frames, nxt = n_frames + 1, next(frames)
+        rec.feed_imu(st.imu.sample(k))
+        if k == i + 31:
+            assert rec.velocity_fix(np.array([0.03, -0.02, 0.01]), np.eye(3) * 0.02**2)
+        assert rec.mode == "coasting"
+        est = rec.estimate()
+        if k % 3 == 0 or k < i + 12:  # read at once (per tick), else later (batched intervals)
+            _ = est.cov
+        ests.append(est)
+        refs.append(_eager_coast(rec))
+    assert n_frames >= 2  # the chains restarted at frames (and at the fix)
+    for est, (vals, cov) in zip(ests, refs, strict=True):
+        np.testing.assert_allclose(est.p_WB, vals.p_WB, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(est.v_WB, vals.v_WB, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(est.R_WB, vals.R_WB, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(est.gyro_bias_rad_s, vals.gyro_bias_rad_s, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(est.cov, cov, rtol=1e-9, atol=1e-12 * np.max(np.abs(cov)))
 
 
 def _light(rec, st, t_last: float) -> None:

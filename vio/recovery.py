@@ -57,6 +57,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
+from viotb.vio.imu_prediction import LazyCovarianceEstimate, PredictionChain
 from viotb.vio.initialization import InitResult
 from viotb.vio.lifecycle import track_conditions
 from viotb.vio.msckf_params import MsckfParams
@@ -149,7 +150,13 @@ def _finite(est: StateEstimate | None) -> bool:
 
 
 class _Coaster:
-    """Dead reckoning from a start estimate: propagated to frame times, predicted to the newest IMU sample."""
+    """Dead reckoning from a start estimate: propagated to frame times, predicted to the newest IMU sample.
+
+    The prediction past the last frame is the filters' own (:mod:`viotb.vio.imu_prediction`, as in
+    :meth:`MSCKF.estimate <viotb.vio.msckf.MSCKF.estimate>`): the mean one IMU interval per new sample, the
+    covariance only when an estimate's ``cov`` is read. A new chain starts whenever the coasted state changes
+    (propagated to a frame, or corrected by a velocity fix: :meth:`changed`).
+    """
 
     def __init__(self, start: StateEstimate, calib: CameraCalibration, noise: ImuNoise, history) -> None:
         self.propagator = Propagator(noise, use_fej=False)
@@ -166,6 +173,8 @@ class _Coaster:
         cov = 0.5 * (start.cov + start.cov.T)
         self.state = State(t0, vals, cov, calib.R_BC, calib.p_BC, calib.time_offset_s)
         self._last_imu: ImuSample | None = history[-1] if history else None
+        self._version = 0
+        self._chain: PredictionChain | None = None
 
     def feed_imu(self, sample: ImuSample) -> None:
         self.propagator.feed_imu(sample)
@@ -173,25 +182,35 @@ class _Coaster:
 
     def propagate_to(self, t_s: float) -> None:
         self.propagator.propagate(self.state, t_s)
+        self.changed()
+
+    def changed(self) -> None:
+        """The coasted state was changed in place: later predictions start from it."""
+        self._version += 1
 
     def estimate(self) -> StateEstimate:
         st = self.state
         t_new = self._last_imu.t_s if self._last_imu is not None else st.t_s
-        vals, phi, q = self.propagator.predict(st.imu, st.t_s, t_new)
-        P = marginal_covariance(st, [st.block(IMU_BLOCK)])
-        cov = phi @ P @ phi.T + q
+        chain = self._chain
+        if chain is None or chain.version != self._version or chain.t_s > t_new:
+            P_imu = marginal_covariance(st, [st.block(IMU_BLOCK)])
+            # A copy of the values: a velocity fix changes them in place (``State._boxplus``) with no
+            # propagation between, and the chain builds its first transition from them when ``cov`` is read.
+            imu = st.imu.copy()
+            chain = self._chain = PredictionChain(self._version, st.t_s, imu, P_imu, self.propagator)
+        index, vals = chain.advance(t_new)
         omega = np.zeros(3)
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
-        return StateEstimate(
-            t_s=max(float(t_new), st.t_s),
-            R_WB=vals.R_WB,
-            p_WB=vals.p_WB,
-            v_WB=vals.v_WB,
-            gyro_bias_rad_s=vals.gyro_bias_rad_s,
-            accel_bias_m_s2=vals.accel_bias_m_s2,
-            omega_B_rad_s=omega,
-            cov=0.5 * (cov + cov.T),
+        return LazyCovarianceEstimate(
+            chain.t_s,
+            vals.R_WB.copy(),
+            vals.p_WB.copy(),
+            vals.v_WB.copy(),
+            vals.gyro_bias_rad_s.copy(),
+            vals.accel_bias_m_s2.copy(),
+            omega,
+            source=(chain, index),
         )
 
 
@@ -375,6 +394,7 @@ class RecoveringEstimator:
         H = np.zeros((3, st.dim))
         H[:, st.block(IMU_BLOCK).offset + VEL + np.arange(3)] = np.eye(3)
         ekf_update(st, H, dv, cov)
+        self._coaster.changed()
         self._fixed = True
         return True
 
