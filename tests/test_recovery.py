@@ -198,6 +198,12 @@ def test_a_velocity_fix_corrects_the_coast_with_the_kalman_gain_and_the_hand_ove
     np.testing.assert_allclose(after.v_WB - before.v_WB, K @ dv, atol=1e-4)
     np.testing.assert_allclose(after.cov_velocity_W_m2_s2, P_vv - K @ P_vv, rtol=0.02, atol=1e-7)
     assert not rec.velocity_fix(dv, R) and not rec.wants_velocity_fix  # once per coast
+    # The fix moved the position too (through the coasted correlations): reported as an odometry jump.
+    (jump,) = rec.odometry_resets
+    assert jump.reason == "velocity fix" and jump.t_s == after.t_s
+    np.testing.assert_array_equal(jump.p_WB_before, before.p_WB)
+    np.testing.assert_array_equal(jump.p_WB_after, after.p_WB)
+    assert np.linalg.norm(after.p_WB - before.p_WB) > 1e-3
     with pytest.raises(ValueError, match="velocity_fix"):
         rec.velocity_fix(np.full(3, np.nan), R)
     # Fixed: the hand-over comes on the return_frames-th lit frame, as without a map.
@@ -205,6 +211,10 @@ def test_a_velocity_fix_corrects_the_coast_with_the_kalman_gain_and_the_hand_ove
     assert rec.events[0].t_reinit_s == pytest.approx(
         DARK_S[1] + (RecoveryParams().return_frames - 1) * 0.05, abs=0.026
     )
+    # The hand-over is another odometry (seeded at the coasted pose: no jump of the pose itself).
+    hand_over = rec.odometry_resets[-1]
+    assert hand_over.reason == "hand-over" and len(rec.odometry_resets) == 2
+    assert np.linalg.norm(hand_over.p_WB_after - hand_over.p_WB_before) < 1e-6
     # Expected but never given: it waits the whole 1 s for one, then hands over all the same.
     rec, t_last = _coast_to_the_light(st, wait_s=1.0)
     _light(rec, st, t_last)
