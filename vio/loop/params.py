@@ -105,6 +105,8 @@ class VerificationParams:
         weight_by_octave: Refine the pose with each inlier weighted by the pyramid levels of its query
             keypoint and of the match keypoint its landmark came from (``verification``'s module
             docstring); off: OpenCV's unweighted Levenberg-Marquardt alone.
+        gravity_aligned: Refine the pose last with roll and pitch held at the odometries' (4 DOF:
+            ``verification.refine_yaw_translation``); off: all six free.
     """
 
     min_inliers: int = 40
@@ -118,6 +120,7 @@ class VerificationParams:
     max_tilt_error_deg: float = 5.0
     max_yaw_sigma_deg: float = 0.11
     weight_by_octave: bool = True
+    gravity_aligned: bool = True
 
 
 @dataclass(frozen=True)
