@@ -20,13 +20,14 @@ Unweighted, the coarse levels (40-60 % of the inliers on 320x240 renders, f = 12
 6.7 cm / 0.98 deg off the truth where yaw trades with a lateral translation; weighted, 4.6 cm / 0.67 deg
 (long-loop 40 s, seed 14; median error 0.75 -> 0.50 cm).
 
-Last (``gravity_aligned``), the pose is refined once more with roll and pitch held at what the two
-odometries say (:func:`refine_yaw_translation`: relative yaw and translation free, 4 DOF, as the pose graph
-and VINS-Mono's relocalization are): gravity makes the tilt observable to each odometry to ~0.1 deg, and
-left free on a view of little depth variation it traded with a lateral translation (``fly-lights-out``
-with KLT: the loops against the hover's keyframes 0.9-1.9 deg off the odometry's tilt and 5-6 cm off the
-truth, following the drifting odometry, so that the drift rate fitted on them had the wrong sign on
-seeds 5 and 8).
+Optionally last (``gravity_aligned``, off by default), the pose is refined once more with roll and pitch
+held at what the two odometries say (:func:`refine_yaw_translation`: relative yaw and translation free,
+4 DOF, as in the pose graph and VINS-Mono's relocalization): gravity makes the tilt observable to each
+odometry to ~0.1 deg, and left free on a view of little depth variation it traded with a lateral
+translation (``fly-lights-out`` with KLT: the loops against the hover's keyframes 0.9-1.9 deg off the
+odometry's tilt and 5-6 cm off the truth, following the drifting odometry, so that the drift rate fitted
+on them had the wrong sign on seeds 5 and 8). Off by default: held, the closures of a moving loop got
+worse (``long-loop``, ``VerificationParams.gravity_aligned``).
 """
 
 from __future__ import annotations
