@@ -53,95 +53,28 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, replace
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
+from viotb.vio.imu_prediction import LazyCovarianceEstimate, PredictionChain
 from viotb.vio.initialization import InitResult
 from viotb.vio.lifecycle import track_conditions
-from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.propagator import Propagator
+from viotb.vio.recovery_records import (  # noqa: F401 (RECOVERABLE_ESTIMATORS, cold_start_msckf_params: re-exported)
+    RECOVERABLE_ESTIMATORS,
+    OdometryReset,
+    RecoveryEvent,
+    RecoveryParams,
+    cold_start_msckf_params,
+)
 from viotb.vio.state import IMU_BLOCK, VEL, ImuValues, State, ekf_update, marginal_covariance
 from viotb.vio.types import CameraFrame, Estimator, HealthStatus, ImuNoise, ImuSample, StateEstimate
 
-RECOVERABLE_ESTIMATORS = ("msckf", "window")
-"""Estimator names :class:`RecoveringEstimator` can wrap (those with a front end and an initializer)."""
 
-
-@dataclass(frozen=True)
-class RecoveryParams:
-    """Settings of :class:`RecoveringEstimator` (units in the names).
-
-    Attributes:
-        feature_loss_s: Tracking is lost after frames with no tracked feature for this long (s).
-        return_min_features: A frame with at least this many tracked features counts as "features back"
-            (the health monitor's ``feature_poverty`` bound).
-        return_frames: Consecutive such frames before the hand-over.
-        history_s: IMU history kept (s) to start the coaster and the fresh estimator from a past state.
-        cov_inflation: Factor on the coasted variances of the observable states given to the new estimator.
-        sigma_position_m: Gauge prior (m) of the re-anchored position.
-        min_sigma_tilt_rad: Floor of the seeded attitude sigma (rad).
-        min_sigma_velocity_m_s: Floor of the seeded velocity sigma (m/s).
-        min_sigma_gyro_bias_rad_s: Floor of the seeded gyro-bias sigma (rad/s).
-        min_sigma_accel_bias_m_s2: Floor of the seeded accelerometer-bias sigma (m/s^2).
-    """
-
-    feature_loss_s: float = 0.5
-    return_min_features: int = 20
-    return_frames: int = 3
-    history_s: float = 3.0
-    cov_inflation: float = 2.0
-    sigma_position_m: float = 1e-3
-    min_sigma_tilt_rad: float = 1e-3
-    min_sigma_velocity_m_s: float = 0.02
-    min_sigma_gyro_bias_rad_s: float = 1e-4
-    min_sigma_accel_bias_m_s2: float = 0.01
-
-    def __post_init__(self) -> None:
-        """Validate the fields (message names the field and value)."""
-        for name in ("feature_loss_s", "history_s", "cov_inflation", "sigma_position_m"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0.0):
-                raise ValueError(f"RecoveryParams.{name} must be positive and finite, got {value}")
-        for name in ("return_min_features", "return_frames"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | np.integer) and value >= 1):
-                raise ValueError(f"RecoveryParams.{name} must be an integer >= 1, got {value!r}")
-
-
-def cold_start_msckf_params(params: MsckfParams) -> MsckfParams:
-    """MSCKF settings for a re-initialized filter (``make_reinit``): a pose clone at every frame.
-
-    The MSCKF updates a feature when its track ends or its oldest clone leaves the window. After a total
-    loss every track starts at once and, in a hover, clones come only every ``every_n_frames`` (6) frames:
-    the first update waits until the window is full (11 clones, 3.3 s), by which time the coasted velocity
-    error (measured up to 8 cm/s after 4 s of darkness) has made the clone poses disagree with the tracks,
-    and the triangulation gate rejects every candidate (measured: 50 of 50): the filter never recovers. A
-    clone per frame fills the window in 0.55 s. Measured on ``fly-lights-out`` (4 s dark), excursion after
-    the light returns: 111 -> 38 cm (seed 1), 70 -> 27 (5), 62 -> 21 (6) with simulated features; 108 -> 34
-    (1), 74 -> 61 cm (3) with KLT.
-    """
-    return replace(params, keyframing=replace(params.keyframing, every_n_frames=1))
-
-
-@dataclass
-class RecoveryEvent:
-    """One loss of tracking and its recovery.
-
-    Attributes:
-        t_lost_s: When tracking was declared lost (s, IMU clock).
-        reason: Why.
-        t_coast_start_s: Time (s) of the state the coast started from (the last good estimate).
-        t_reinit_s: When the fresh estimator took over (s), None while still coasting.
-        coast_position_sigma_m: Largest position sigma (m) of the coasted state at the hand-over: how far the
-            re-anchored frame may be from the old one.
-    """
-
-    t_lost_s: float
-    reason: str
-    t_coast_start_s: float
-    t_reinit_s: float | None = None
-    coast_position_sigma_m: float = float("nan")
+def _reset(reason: str, before: StateEstimate, after: StateEstimate) -> OdometryReset:
+    return OdometryReset(
+        float(after.t_s), reason, before.R_WB.copy(), before.p_WB.copy(), after.R_WB.copy(), after.p_WB.copy()
+    )
 
 
 def _finite(est: StateEstimate | None) -> bool:
@@ -149,7 +82,13 @@ def _finite(est: StateEstimate | None) -> bool:
 
 
 class _Coaster:
-    """Dead reckoning from a start estimate: propagated to frame times, predicted to the newest IMU sample."""
+    """Dead reckoning from a start estimate: propagated to frame times, predicted to the newest IMU sample.
+
+    The prediction past the last frame is the filters' own (:mod:`viotb.vio.imu_prediction`, as in
+    :meth:`MSCKF.estimate <viotb.vio.msckf.MSCKF.estimate>`): the mean one IMU interval per new sample, the
+    covariance only when an estimate's ``cov`` is read. A new chain starts whenever the coasted state changes
+    (propagated to a frame, or corrected by a velocity fix: :meth:`changed`).
+    """
 
     def __init__(self, start: StateEstimate, calib: CameraCalibration, noise: ImuNoise, history) -> None:
         self.propagator = Propagator(noise, use_fej=False)
@@ -166,6 +105,8 @@ class _Coaster:
         cov = 0.5 * (start.cov + start.cov.T)
         self.state = State(t0, vals, cov, calib.R_BC, calib.p_BC, calib.time_offset_s)
         self._last_imu: ImuSample | None = history[-1] if history else None
+        self._version = 0
+        self._chain: PredictionChain | None = None
 
     def feed_imu(self, sample: ImuSample) -> None:
         self.propagator.feed_imu(sample)
@@ -173,25 +114,35 @@ class _Coaster:
 
     def propagate_to(self, t_s: float) -> None:
         self.propagator.propagate(self.state, t_s)
+        self.changed()
+
+    def changed(self) -> None:
+        """The coasted state was changed in place: later predictions start from it."""
+        self._version += 1
 
     def estimate(self) -> StateEstimate:
         st = self.state
         t_new = self._last_imu.t_s if self._last_imu is not None else st.t_s
-        vals, phi, q = self.propagator.predict(st.imu, st.t_s, t_new)
-        P = marginal_covariance(st, [st.block(IMU_BLOCK)])
-        cov = phi @ P @ phi.T + q
+        chain = self._chain
+        if chain is None or chain.version != self._version or chain.t_s > t_new:
+            P_imu = marginal_covariance(st, [st.block(IMU_BLOCK)])
+            # A copy of the values: a velocity fix changes them in place (``State._boxplus``) with no
+            # propagation between, and the chain builds its first transition from them when ``cov`` is read.
+            imu = st.imu.copy()
+            chain = self._chain = PredictionChain(self._version, st.t_s, imu, P_imu, self.propagator)
+        index, vals = chain.advance(t_new)
         omega = np.zeros(3)
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
-        return StateEstimate(
-            t_s=max(float(t_new), st.t_s),
-            R_WB=vals.R_WB,
-            p_WB=vals.p_WB,
-            v_WB=vals.v_WB,
-            gyro_bias_rad_s=vals.gyro_bias_rad_s,
-            accel_bias_m_s2=vals.accel_bias_m_s2,
-            omega_B_rad_s=omega,
-            cov=0.5 * (cov + cov.T),
+        return LazyCovarianceEstimate(
+            chain.t_s,
+            vals.R_WB.copy(),
+            vals.p_WB.copy(),
+            vals.v_WB.copy(),
+            vals.gyro_bias_rad_s.copy(),
+            vals.accel_bias_m_s2.copy(),
+            omega,
+            source=(chain, index),
         )
 
 
@@ -209,6 +160,8 @@ class RecoveringEstimator:
 
     Attributes:
         events: Every loss of tracking so far, in order.
+        odometry_resets: Every jump of the published odometry so far (velocity fixes, hand-overs), in order;
+            the list only grows (a consumer may keep it and read what is new).
     """
 
     def __init__(
@@ -245,6 +198,7 @@ class RecoveringEstimator:
         self._back_since: float | None = None  # first frame of the current run of frames with features
         self._fixed = False  # the current coast took a velocity fix
         self.events: list[RecoveryEvent] = []
+        self.odometry_resets: list[OdometryReset] = []
 
     # ------------------------------------------------------------------ readers
     @property
@@ -371,11 +325,14 @@ class RecoveringEstimator:
             raise ValueError(f"velocity_fix: dv (3,) and cov (3, 3) must be finite, got {dv} and {cov}")
         if not self.wants_velocity_fix:
             return False
+        before = self._coaster.estimate()
         st = self._coaster.state
         H = np.zeros((3, st.dim))
         H[:, st.block(IMU_BLOCK).offset + VEL + np.arange(3)] = np.eye(3)
         ekf_update(st, H, dv, cov)
+        self._coaster.changed()
         self._fixed = True
+        self.odometry_resets.append(_reset("velocity fix", before, self._coaster.estimate()))
         return True
 
     # ------------------------------------------------------------------ internals
@@ -469,11 +426,13 @@ class RecoveringEstimator:
 
     def _hand_over(self, t_imu: float, n: int) -> None:
         ev = self.events[-1]
-        sigma = self._coaster.estimate().position_sigma_W_m
-        ev.t_reinit_s, ev.coast_position_sigma_m = t_imu, float(np.max(sigma))
+        coasted = self._coaster.estimate()
+        ev.t_reinit_s, ev.coast_position_sigma_m = t_imu, float(np.max(coasted.position_sigma_W_m))
         self._inner = self._candidate
         est = self._inner.estimate()
         self._last_good = est if _finite(est) else None
+        if self._last_good is not None:
+            self.odometry_resets.append(_reset("hand-over", coasted, est))
         self._candidate = self._coaster = None
         self._mode = "tracking"
         self._back_frames = 0

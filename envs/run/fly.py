@@ -125,8 +125,10 @@ def fly(
     lc = None
     if lc_opts is not None:
         lc = FlightLoopClosure(lc_opts, loop.calib_given, frontend, rig.render_images)
-        if isinstance(loop.estimator, RecoveringEstimator) and lc_opts.velocity_fix_wait_s > 0.0:
-            loop.estimator.expect_velocity_fixes(lc_opts.velocity_fix_wait_s)
+        if isinstance(loop.estimator, RecoveringEstimator):
+            lc.follow_odometry_resets(loop.estimator.odometry_resets)
+            if lc_opts.velocity_fix_wait_s > 0.0:
+                loop.estimator.expect_velocity_fixes(lc_opts.velocity_fix_wait_s)
     controller = SE3Controller(vehicle_params_from_model(loop.sim.model), gains or SE3Gains())
     log = FlightLog()
     ctrl_dt = 1.0 / CONTROL_RATE_HZ

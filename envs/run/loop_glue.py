@@ -296,6 +296,29 @@ class FlightLoopClosure:
         self.truth: list[StateEstimate] = []
         self._had_tracks = False
         self._sequence_lost: int | None = None  # the sequence in which tracking was last lost
+        self._resets: list | None = None  # the estimator's odometry resets (follow_odometry_resets)
+        self._resets_seen = 0
+
+    def follow_odometry_resets(self, resets: list) -> None:
+        """Follow an estimator's odometry jumps (``RecoveringEstimator.odometry_resets``, a growing list).
+
+        Before each frame and each correction, a jump not yet seen is handed to the closer
+        (``LoopCloser.notify_odometry_reset``): the correction in force is carried over to the odometry
+        after the jump, so the corrected pose does not move with it, and the next frame starts a new
+        segment that relocalizes afresh. Without it a velocity fix that moved the coasted position by
+        21 cm moved the corrected pose by as much, and the later loops, which put it back, were refused
+        as too large a drift (``fly-lights-out`` KLT seed 5, README "Recovery in flight").
+        """
+        self._resets, self._resets_seen = resets, 0
+        self._sync_resets()
+
+    def _sync_resets(self) -> None:
+        if self._resets is None:
+            return
+        while self._resets_seen < len(self._resets):
+            r = self._resets[self._resets_seen]
+            self._resets_seen += 1
+            self.closer.notify_odometry_reset(r.R_WB_before, r.p_WB_before, r.R_WB_after, r.p_WB_after)
 
     def on_frame(
         self,
@@ -309,6 +332,7 @@ class FlightLoopClosure:
 
         ``truth`` (the simulator's pose then, optional) feeds the odometry-vs-corrected metrics.
         """
+        self._sync_resets()
         if est is None or image_u8 is None:
             return
         if tracked == 0 and self._had_tracks:
@@ -378,6 +402,7 @@ class FlightLoopClosure:
 
     def correct(self, t_s: float, est: StateEstimate | None) -> StateEstimate | None:
         """The estimate in the map frame (attitude, position and velocity) with the correction in force."""
+        self._sync_resets()
         if est is None:
             return None
         T = self.closer.correction(t_s)

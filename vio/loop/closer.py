@@ -111,6 +111,28 @@ class LoopCloser:
         """The estimator lost track (and will restart in a new odometry frame): start a new sequence."""
         self._lost = True
 
+    def notify_odometry_reset(
+        self, R_WB_before: np.ndarray, p_WB_before: np.ndarray, R_WB_after: np.ndarray, p_WB_after: np.ndarray
+    ) -> None:
+        """The odometry jumped (an update moved the pose, another estimator took over): a new segment.
+
+        The correction in force is carried over to the new odometry frame (``CorrectionBlender.reexpress``:
+        the corrected pose does not jump), and the next frame starts a new sequence, as after a tracking
+        loss: the keyframes before the jump keep their own odometry frame and edges (an odometry edge across
+        the jump would read it as motion), and the new segment's first relocalization measures its
+        ``T_map_odom`` afresh instead of checking its loops against a correction that was measured on the
+        poses before the jump.
+
+        Args:
+            R_WB_before: The odometry attitude just before the jump, shape (3, 3).
+            p_WB_before: The odometry position just before (m), shape (3,).
+            R_WB_after: The same instant's attitude after the jump, shape (3, 3).
+            p_WB_after: Its position after (m), shape (3,).
+        """
+        axis = self.heading_axis_B if self.heading_axis_B is not None else horizontal_axis_B(R_WB_before)
+        self.blender.reexpress(drift_4dof(R_WB_after, p_WB_after, R_WB_before, p_WB_before, axis))
+        self._lost = True
+
     def correction(self, t_s: float) -> RigidTransform:
         """``T_W_corrected_from_W_odom`` in force at ``t_s``, blended."""
         return self.blender.value(t_s)

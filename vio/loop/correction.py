@@ -41,6 +41,16 @@ class CorrectionBlender:
         self._to = T_new
         self._t_start_s = float(t_s)
 
+    def reexpress(self, T_new_from_old: RigidTransform) -> None:
+        """The odometry frame moved: carry the corrections over so that every corrected pose stays put.
+
+        A pose ``x_old`` of the former odometry frame is ``x_new = T_new_from_old @ x_old`` now; the
+        correction in force and the one being blended to become ``T @ T_new_from_old^-1``, so that
+        ``T' @ x_new = T @ x_old``.
+        """
+        inv = T_new_from_old.inverse()
+        self._from, self._to = self._from @ inv, self._to @ inv
+
     def value(self, t_s: float) -> RigidTransform:
         """Correction in force at ``t_s`` (s)."""
         if self.duration_s == 0 or t_s >= self._t_start_s + self.duration_s:

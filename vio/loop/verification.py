@@ -19,6 +19,15 @@ its ``invSigma2`` per level (Mur-Artal et al. 2015, the motion-only bundle adjus
 Unweighted, the coarse levels (40-60 % of the inliers on 320x240 renders, f = 120 px) pulled a closure
 6.7 cm / 0.98 deg off the truth where yaw trades with a lateral translation; weighted, 4.6 cm / 0.67 deg
 (long-loop 40 s, seed 14; median error 0.75 -> 0.50 cm).
+
+Optionally last (``gravity_aligned``, off by default), the pose is refined once more with roll and pitch
+held at what the two odometries say (:func:`refine_yaw_translation`: relative yaw and translation free,
+4 DOF, as in the pose graph and VINS-Mono's relocalization): gravity makes the tilt observable to each
+odometry to ~0.1 deg, and left free on a view of little depth variation it traded with a lateral
+translation (``fly-lights-out`` with KLT: the loops against the hover's keyframes 0.9-1.9 deg off the
+odometry's tilt and 5-6 cm off the truth, following the drifting odometry, so that the drift rate fitted
+on them had the wrong sign on seeds 5 and 8). Off by default: held, the closures of a moving loop got
+worse (``long-loop``, ``VerificationParams.gravity_aligned``).
 """
 
 from __future__ import annotations
@@ -28,9 +37,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.lie import exp_so3, skew_batch
+from viotb.vio.lie import exp_so3, rotz, skew_batch
 from viotb.vio.loop.frames import (
     RigidTransform,
+    heading_rad,
     horizontal_axis_B,
     loop_4dof,
     projection_jacobian,
@@ -159,6 +169,60 @@ def refine_pose_weighted(
     return R, p
 
 
+def refine_yaw_translation(
+    points_B: np.ndarray,
+    xy_norm: np.ndarray,
+    weights: np.ndarray,
+    A: np.ndarray,
+    T_m: np.ndarray,
+    yaw_rad: float,
+    p_CB: np.ndarray,
+    iterations: int = 10,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted Gauss-Newton refinement of a camera pose whose roll and pitch are known (4 DOF).
+
+    The rotation is ``R_CB = A Rz(yaw) T_m`` (``T_m`` the match body's tilt, ``A = R_BC^T T_q^T`` the
+    query's), so only the relative yaw about the vertical and the translation are free; residuals and
+    weights as in :func:`refine_pose_weighted`. Roll and pitch are what gravity makes observable to both
+    odometries; PnP with them free trades a tilt for a translation on a view of little depth variation
+    (measured on ``fly-lights-out``: loops against hover keyframes 0.9-1.9 deg off the odometry's tilt and
+    5-6 cm off the truth; 0.1-0.4 deg and 1-2 cm against the others).
+
+    Args:
+        points_B: Landmarks in the match body frame (m), shape (N, 3).
+        xy_norm: Their observations in normalized (undistorted) coordinates, shape (N, 2).
+        weights: Inverse relative variances, shape (N,), positive.
+        A: ``R_BC^T T_q^T``, shape (3, 3).
+        T_m: The match body's tilt (``R_WB`` without its heading), shape (3, 3).
+        yaw_rad: Initial relative yaw (rad).
+        p_CB: Initial translation (m), shape (3,).
+        iterations: Most Gauss-Newton steps (stops earlier once the step is below 1e-10).
+
+    Returns:
+        ``(R_CB (3, 3), p_CB (3,))``; the initial pose where the normal equations are singular.
+    """
+    X = np.asarray(points_B, dtype=float) @ np.asarray(T_m).T  # the landmarks in the match's yaw frame
+    w = np.asarray(weights, dtype=float)
+    yaw, p = float(yaw_rad), np.asarray(p_CB, dtype=float).copy()
+    dX = np.cross(np.array([0.0, 0.0, 1.0]), X)  # d (Rz X) / d yaw, before Rz
+    for _ in range(iterations):
+        R = A @ rotz(yaw)
+        p_C = X @ R.T + p
+        r = p_C[:, :2] / p_C[:, 2:3] - xy_norm
+        d_proj = projection_jacobian(p_C)
+        J = np.concatenate([d_proj @ (dX @ R.T)[:, :, None], d_proj], axis=2)  # (N, 2, 4)
+        H = np.einsum("n,nki,nkj->ij", w, J, J)
+        g = np.einsum("n,nki,nk->i", w, J, r)
+        try:
+            step = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            return A @ rotz(float(yaw_rad)) @ T_m, np.asarray(p_CB, dtype=float)
+        yaw, p = yaw + step[0], p + step[1:]
+        if np.linalg.norm(step) < 1e-10:
+            break
+    return A @ rotz(yaw) @ T_m, p
+
+
 def _reprojection(
     points_B: np.ndarray, xy_norm: np.ndarray, R_CB: np.ndarray, p_CB: np.ndarray, f_px: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -166,6 +230,29 @@ def _reprojection(
     p_C = points_B @ R_CB.T + p_CB
     with np.errstate(divide="ignore", invalid="ignore"):
         return p_C, f_px * np.linalg.norm(p_C[:, :2] / p_C[:, 2:3] - xy_norm, axis=1)
+
+
+def _align_tilt(
+    obj, img, weights, R_CB, p_CB, R_WBq, R_WBm, calib, f_px, params
+) -> tuple[np.ndarray, np.ndarray]:
+    """The PnP pose refined with the odometries' roll and pitch held (:func:`refine_yaw_translation`).
+
+    The tilt check is made on the free 6-DOF pose first (a pose far off the odometry's tilt is a wrong
+    match); the inliers are those of the free pose.
+    """
+    tilt = tilt_error_rad(R_WBm @ (calib.R_BC @ R_CB).T, R_WBq)
+    if np.rad2deg(tilt) > params.max_tilt_error_deg:
+        return R_CB, p_CB  # refused by the tilt check that follows
+    T_q = rotz(-heading_rad(R_WBq)) @ R_WBq
+    T_m = rotz(-heading_rad(R_WBm)) @ R_WBm
+    A = calib.R_BC.T @ T_q.T
+    M = T_q @ calib.R_BC @ R_CB @ T_m.T  # ~ Rz(relative yaw)
+    p_C, err_px = _reprojection(obj, img, R_CB, p_CB, f_px)
+    sel = (err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0)
+    if sel.sum() < params.min_inliers:
+        return R_CB, p_CB
+    yaw0 = float(np.arctan2(M[1, 0], M[0, 0]))
+    return refine_yaw_translation(obj[sel], img[sel], weights[sel], A, T_m, yaw0, p_CB)
 
 
 def verify_candidate(
@@ -234,6 +321,10 @@ def verify_candidate(
         sel = (err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0)
         if sel.sum() >= params.min_inliers:
             R_CB, p_CB = refine_pose_weighted(obj[sel], img[sel], weights[sel], R_CB, p_CB)
+    if params.gravity_aligned:
+        R_CB, p_CB = _align_tilt(
+            obj, img, weights, R_CB, p_CB, R_WBq_odom, match.R_WB_odom, calib, f_px, params
+        )
     p_C, err_px = _reprojection(obj, img, R_CB, p_CB, f_px)
     inliers = np.flatnonzero((err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0))
     if len(inliers) < max(params.min_inliers, params.min_inlier_ratio * len(iq)):
