@@ -89,7 +89,16 @@ def test_long_loop_is_closed(tmp_path, scenario):
     record_scenario(scenario, tmp_path / "data", seed=0, seconds=seconds)
     result = evaluate_dataset(tmp_path / "data", tmp_path / "eval", EvalOptions(loop=LoopOptions()))
     assert result["loop_closures"] >= 20
-    assert result["ate_posyaw_m"] < 0.5 * result["ate_posyaw_odometry_m"]
+    if scenario == "fail-long-loop":  # drift dominates: the loops take most of it out
+        assert result["ate_posyaw_m"] < 0.5 * result["ate_posyaw_odometry_m"]
+    else:
+        # Here the ratio measures the odometry more than the loops: what remains is the odometry's shape
+        # within a lap, which loops between laps cannot observe (README "Loop closure against its targets").
+        # When the odometry improved (7.1 -> 4.6 cm, session 7's KLT noise model), the loop-closed ATE went
+        # 3.0 -> 2.4 cm and the ratio 0.42 -> 0.52. So the loop-closed ATE itself is bounded, at what this
+        # test first measured, and it must still beat the odometry clearly.
+        assert result["ate_posyaw_m"] < 0.030
+        assert result["ate_posyaw_m"] < 0.6 * result["ate_posyaw_odometry_m"]
     returns = result["return_to_start_err_m"]
     assert max(returns[:-1]) < 0.025  # the last return is the recording's last frame: not yet confirmed
 
