@@ -138,6 +138,9 @@ class KltParams:
         anchor_half_size_px: Half side (px) of the anchor templates.
         anchor_max_shift_px: Largest accepted refinement (px) away from the frame-to-frame position.
         anchor_min_zncc: Smallest accepted normalized cross-correlation of an aligned template.
+        anchor_projective_after_px: A track at least this far (px) from where its template was taken is
+            aligned with a homography instead of an affine warp (``TemplateAnchors.projective_after_px``;
+            ``inf``: affine only).
     """
 
     max_features: int = 180
@@ -159,6 +162,8 @@ class KltParams:
     anchor_half_size_px: int = 5
     anchor_max_shift_px: float = 2.0
     anchor_min_zncc: float = 0.85
+    anchor_projective_after_px: float = float("inf")
+    anchor_fail_ends_track: bool = False
 
 
 class KltTracker:
@@ -191,7 +196,10 @@ class KltTracker:
         if not p.anchor_templates:
             return None
         return TemplateAnchors(
-            p.anchor_half_size_px, max_shift_px=p.anchor_max_shift_px, min_zncc=p.anchor_min_zncc
+            p.anchor_half_size_px,
+            max_shift_px=p.anchor_max_shift_px,
+            min_zncc=p.anchor_min_zncc,
+            projective_after_px=p.anchor_projective_after_px,
         )
 
     def undistort(self, uv_px: np.ndarray) -> np.ndarray:
@@ -359,6 +367,13 @@ class KltTracker:
         img = self._check_image(frame.image)
         img_f32 = img.astype(np.float32) if self._anchors is not None else None
         pts, ids, xy, fresh = self._track(img, img_f32)
+        if self.params.anchor_fail_ends_track and np.any(fresh):
+            # A failed anchoring would take the template anew at the drifted position: the track ends
+            # there and a new one starts (the filter does not take the two for one point).
+            n_fresh = int(fresh.sum())
+            ids = ids.copy()
+            ids[fresh] = np.arange(self._next_id, self._next_id + n_fresh, dtype=np.int64)
+            self._next_id += n_fresh
         new = self._detect(img, pts)
         if len(new):
             new_ids = np.arange(self._next_id, self._next_id + len(new), dtype=np.int64)
