@@ -105,6 +105,10 @@ class TemplateAnchors:
             least-squares fit puts the quadratic part of the warp, ``-A x (g^T x)``, into the translation,
             a shift ``~ -A E[x x^T] g`` of one sign for every track on the plane (README "KLT track bias
             on foreshortened planes").
+        projective_damping: Levenberg damping of the two projective parameters (relative to their
+            diagonal): each step moves ``g`` by about half its Gauss-Newton step, so that ``g``, which the
+            small patch holds weakly, follows the view over a few frames (``circle`` seed 0: robust white
+            sigma 0.038 px at 1e-3, 0.034 at 1).
     """
 
     def __init__(
@@ -119,7 +123,7 @@ class TemplateAnchors:
         affine_after_px: float = 3.0,
         converged_px: float = 0.0,
         projective_after_px: float = float("inf"),
-        projective_damping: float = 1e-3,
+        projective_damping: float = 1.0,
     ) -> None:
         """Create an empty template store."""
         r = np.arange(-half_size_px, half_size_px + 1, dtype=float)
