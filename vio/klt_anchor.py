@@ -20,6 +20,11 @@ Gauss-Newton matrix are computed once when the template is taken, and folded int
 taken between zero-mean, unit-variance patches, so an exposure change does not bias it. All tracks are
 aligned at once in numpy (no per-feature Python loop); a track stops iterating once its step is below
 ``converged_px``.
+
+A track far enough from where its template was taken (``projective_after_px``) is aligned with the
+8-parameter homography instead (the same algorithm with two more steepest-descent images; Baker and
+Matthews 2004, sec. 3.2 lists the homographies among the warps it applies to): an affine fit of a patch on a
+foreshortened plane drifts one way as the view changes (README "KLT track bias on foreshortened planes").
 """
 
 from __future__ import annotations
