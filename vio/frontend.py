@@ -142,8 +142,9 @@ class KltParams:
             aligned with a homography instead of an affine warp (``TemplateAnchors.projective_after_px``;
             ``inf``: affine only, the behaviour before). An affine anchor on a foreshortened plane drifts
             one way (``circle`` seed 0, floor tracks: +0.036 / +0.080 / +0.19 px in v after 30-60 / 60-120 /
-            120-400 px; with the homography +0.008 / -0.002 / -0.005; README "KLT track bias on
-            foreshortened planes").
+            120-400 px; with these defaults +0.008 / +0.006 / +0.000; README "KLT track bias on
+            foreshortened planes"). 20 px, not 10: from 10 px the drone recordings do slightly better but the
+            headset look-around worse (seed 0 world lock 4.9 -> 6.4 mm; 5.4 from 20 px).
         anchor_iterations: Gauss-Newton iterations of the anchor alignment per frame (the warp is carried
             from frame to frame, so 2 reach the accuracy of 4: ``circle`` seed 0 robust white sigma 0.033
             against 0.035 px; 4 was the default before, and the homography with 4 cost 17 % more KLT CPU).
@@ -171,7 +172,7 @@ class KltParams:
     anchor_half_size_px: int = 5
     anchor_max_shift_px: float = 2.0
     anchor_min_zncc: float = 0.85
-    anchor_projective_after_px: float = 10.0
+    anchor_projective_after_px: float = 20.0
     anchor_iterations: int = 2
     anchor_fail_ends_track: bool = True
 
