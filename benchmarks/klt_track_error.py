@@ -22,6 +22,7 @@ image motion of the feature per frame (does the slide follow motion or time?).
 Usage::
 
     python benchmarks/klt_track_error.py RECORDING_DIR SCENARIO [--max-frames N] [--json] [--anchor]
+        [--projective-after-px PX]
 """
 
 from __future__ import annotations
