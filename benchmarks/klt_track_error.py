@@ -22,6 +22,7 @@ image motion of the feature per frame (does the slide follow motion or time?).
 Usage::
 
     python benchmarks/klt_track_error.py RECORDING_DIR SCENARIO [--max-frames N] [--json] [--anchor]
+        [--projective-after-px PX]
 """
 
 from __future__ import annotations
@@ -41,7 +42,12 @@ def _mad_var(x: np.ndarray) -> float:
 
 
 def track_errors(
-    rec: Path, scenario: str, max_frames: int | None = None, edge_px: float = 3.0, anchor: bool = False
+    rec: Path,
+    scenario: str,
+    max_frames: int | None = None,
+    edge_px: float = 3.0,
+    anchor: bool = False,
+    projective_after_px: float = float("inf"),
 ) -> tuple[dict[int, np.ndarray], dict[int, float]]:
     """KLT error of every track against the true projection of its first 3-D point.
 
@@ -51,10 +57,14 @@ def track_errors(
         max_frames: Frames to use (None: all).
         edge_px: Offset (px) of the four neighbour rays that measure the depth step around a first point.
         anchor: Track with ``KltParams.anchor_templates`` (drift correction against the first template).
+        projective_after_px: ``KltParams.anchor_projective_after_px`` (homography alignment of the anchors).
 
     Returns:
-        ``(errors, depth_step)``: track id -> array (n, 5) of frame index, e_u, e_v (px), u, v of the KLT
-        position (px); and track id -> the largest relative depth difference between the first ray and its
+        ``(errors, depth_step)``: track id -> array (n, 8) of frame index, e_u, e_v (px), u, v of the KLT
+        position (px), the world z of the first 3-D point (m; the floor is z = 0), the cosine of the angle
+        between the current view ray and the surface normal (1: seen head on, 0: grazing; the normal from
+        the four neighbour rays' points, NaN on a depth edge) and the image distance (px) from the first
+        observation; and track id -> the largest relative depth difference between the first ray and its
         four neighbours ``edge_px`` away (large on an occluding contour: the corner is no 3-D point).
     """
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -73,9 +83,11 @@ def track_errors(
     body = mujoco.mj_name2id(sim.model, mujoco.mjtObj.mjOBJ_BODY, VEHICLE_BODIES[sc.vehicle])
     mujoco.mj_forward(sim.model, sim.data)
     cam = ds.calib.camera
-    trk = KltTracker(cam, KltParams(anchor_templates=anchor))
+    trk = KltTracker(cam, KltParams(anchor_templates=anchor, anchor_projective_after_px=projective_after_px))
     n = len(ds.cam_t_s) if max_frames is None else min(max_frames, len(ds.cam_t_s))
     point: dict[int, np.ndarray | None] = {}
+    normal: dict[int, np.ndarray] = {}
+    first_uv: dict[int, np.ndarray] = {}
     step: dict[int, float] = {}
     offsets = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]) * edge_px / cam.fx
     out: dict[int, list] = {}
@@ -95,13 +107,19 @@ def track_errors(
                 point[tid] = p_WC + dist * ray if dist > 0 else None
                 out[tid] = []
                 z0 = (R_WC.T @ (dist * ray))[2]
-                zs = []
+                zs, nb = [], []
                 for off in offsets:
                     r2 = R_WC @ np.array([xy[0] + off[0], xy[1] + off[1], 1.0])
                     r2 /= np.linalg.norm(r2)
                     d2 = mujoco.mj_ray(sim.model, sim.data, p_WC, r2, None, 1, body, geom)
                     zs.append((R_WC.T @ (d2 * r2))[2] if d2 > 0 else np.inf)
+                    nb.append(d2 * r2)
                 step[tid] = float(np.max(np.abs(np.array(zs) - z0)) / max(z0, 1e-6))
+                # The surface normal from the neighbours (+u, -u, +v, -v), towards the camera.
+                n_W = np.cross(nb[0] - nb[1], nb[2] - nb[3])
+                n_W = n_W / max(np.linalg.norm(n_W), 1e-12) * (-1.0 if n_W @ ray > 0 else 1.0)
+                normal[tid] = n_W if step[tid] < 0.05 else np.full(3, np.nan)
+                first_uv[tid] = np.asarray(uv, dtype=float)
             p_f = point[tid]
             if p_f is None:
                 continue
@@ -109,7 +127,10 @@ def track_errors(
             if p_C[2] <= 1e-3:
                 continue
             uv_true = cam.project(p_C[None])[0]
-            out[tid].append((i, *(uv - uv_true), *uv))
+            view = (p_f - p_WC) / np.linalg.norm(p_f - p_WC)
+            cos_view = abs(float(view @ normal[tid]))
+            moved = float(np.linalg.norm(uv - first_uv[tid]))
+            out[tid].append((i, *(uv - uv_true), *uv, p_f[2], cos_view, moved))
     errors = {k: np.array(v) for k, v in out.items() if len(v) >= 2}
     return errors, {k: step[k] for k in errors}
 
@@ -247,6 +268,52 @@ def fit_core(tracks: dict[int, np.ndarray], tail_sigmas: float = 5.0) -> dict:
     }
 
 
+def bias_split(
+    tracks: dict[int, np.ndarray],
+    depth_step: dict[int, float],
+    floor_z_m: float = 0.02,
+    gross_px: float = 2.0,
+) -> dict:
+    """The mean track error (a bias shared by many tracks) by surface, foreshortening and view change.
+
+    Observations of tracks off depth edges (relative depth step under 0.05) with an error under ``gross_px``
+    (the tail the MSCKF's gate removes), split by the surface of the first 3-D point (floor: world z under
+    ``floor_z_m``; walls and objects: the rest), by the cosine between view ray and surface normal and by
+    the image distance from the first observation.
+
+    Returns:
+        ``{surface: {"by_distance_px": {bin: row}, "by_cos_view": {bin: row}}}``, a row: ``n``, ``mean_px``
+        (e_u, e_v), ``median_px`` (e_u, e_v) and ``rms_px``.
+    """
+    rows = [a for k, a in tracks.items() if depth_step[k] < 0.05 and a.shape[1] >= 8]
+    A = np.vstack(rows)
+    A = A[np.linalg.norm(A[:, 1:3], axis=1) < gross_px]
+    floor = np.abs(A[:, 5]) < floor_z_m
+
+    def row(sel: np.ndarray) -> dict:
+        e = A[sel, 1:3]
+        return {
+            "n": int(sel.sum()),
+            "mean_px": [round(float(v), 4) for v in e.mean(axis=0)],
+            "median_px": [round(float(v), 4) for v in np.median(e, axis=0)],
+            "rms_px": round(float(np.sqrt(np.mean(e * e))), 4),
+        }
+
+    out = {}
+    for name, surf in (("floor", floor), ("walls", ~floor)):
+        split: dict[str, dict] = {"by_distance_px": {}, "by_cos_view": {}}
+        for key, col, edges in (
+            ("by_distance_px", 7, [0.0, 10.0, 30.0, 60.0, 120.0, 400.0]),
+            ("by_cos_view", 6, [0.0, 0.2, 0.4, 0.6, 0.8, 1.01]),
+        ):
+            for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+                sel = surf & (A[:, col] >= lo) & (A[:, col] < hi)
+                if sel.sum() >= 30:
+                    split[key][f"{lo:g}-{hi:g}"] = row(sel)
+        out[name] = split
+    return out
+
+
 def main() -> None:
     """Command line: print the fitted model (and ``--json`` the whole result)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -255,10 +322,19 @@ def main() -> None:
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--anchor", action="store_true", help="KltParams.anchor_templates (drift correction)")
+    ap.add_argument(
+        "--projective-after-px",
+        type=float,
+        default=float("inf"),
+        help="KltParams.anchor_projective_after_px (homography anchors; default inf: affine)",
+    )
     a = ap.parse_args()
-    errors = track_errors(a.recording, a.scenario, a.max_frames, anchor=a.anchor)[0]
+    errors, depth_step = track_errors(
+        a.recording, a.scenario, a.max_frames, anchor=a.anchor, projective_after_px=a.projective_after_px
+    )
     res = fit_noise(errors)
     res["core"] = fit_core(errors)
+    res["bias"] = bias_split(errors, depth_step)
     if a.json:
         print(json.dumps(res, indent=1))
         return

@@ -187,3 +187,26 @@ def test_batched_alignment_equals_the_per_track_reference():
         # And the alignment did its job: an affine fit lands on the truth within bilinear resampling error.
         if affine:
             assert np.sqrt(np.mean(np.sum((refined - truth) ** 2, axis=1))) < 0.05
+
+
+def test_a_failed_anchoring_ends_the_track_unless_told_otherwise():
+    """``anchor_min_zncc`` above 1 refuses every refinement: each track's anchoring fails every frame."""
+    camera = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    base = _texture(6, (300, 400))
+    frames = []
+    for k in range(4):
+        M = np.float32([[1.0, 0.0, -40.0 - 1.1 * k], [0.0, 1.0, -30.0]])
+        frames.append(cv2.warpAffine(base, M, (320, 240), flags=cv2.INTER_CUBIC).astype(np.uint8))
+    seen = {}
+    for ends in (False, True):
+        trk = KltTracker(camera, KltParams(anchor_min_zncc=1.01, anchor_fail_ends_track=ends))
+        ids = [
+            set(trk.process(CameraFrame(t_s=0.05 * k, image=im), 0.05 * k).ids.tolist())
+            for k, im in enumerate(frames)
+        ]
+        seen[ends] = ids
+    # Kept: the tracks of the first frame go on (frame-to-frame, their templates taken anew each frame).
+    assert len(seen[False][0] & seen[False][-1]) > 0.8 * len(seen[False][0])
+    # Ended: no id lives past the frame after its start; the positions go on under new ids.
+    assert not seen[True][0] & seen[True][2]
+    assert len(seen[True][2]) > 0.8 * len(seen[False][2])
