@@ -22,14 +22,4 @@ if "numpy" in sys.modules and "OPENBLAS_NUM_THREADS" not in _USER_SET:
 
     threadpool_limits(1)
 
-# OpenCV's parallel_for splits the front end's small per-frame work (pyramids, KLT over a few hundred points)
-# over worker threads. On 2 cores that shared work cost more CPU than it saved and made the frame wait on the
-# workers: headset stereo look-around, 10 s, interleaved runs at a load of 5-6, per-frame median wall 20.6 /
-# 19.5 ms threaded against 16.4 / 17.0 ms with one thread (process CPU 16.0 / 20.9 against 14.7 / 16.6 ms);
-# the estimates are bit-identical. An explicit OPENCV_FOR_THREADS_NUM (read when cv2 is first imported) wins.
-_CV_USER_SET = "OPENCV_FOR_THREADS_NUM" in os.environ
-os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1")
-if "cv2" in sys.modules and not _CV_USER_SET:
-    sys.modules["cv2"].setNumThreads(1)
-
 __version__ = "0.1.0"
