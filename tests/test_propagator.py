@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from imu_values_ops import boxminus as _boxminus
+from imu_values_ops import boxplus as _boxplus
 from random_states import random_imu_values
 from viotb.vio.lie import exp_so3, log_so3, skew
 from viotb.vio.propagator import (
@@ -15,28 +17,6 @@ from viotb.vio.propagator import (
 )
 from viotb.vio.state import IMU_BLOCK, ImuValues, State, is_psd, marginal_covariance
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample, gravity_W
-
-
-def _boxplus(x: ImuValues, d: np.ndarray) -> ImuValues:
-    return ImuValues(
-        x.R_WB @ exp_so3(d[0:3]),
-        x.p_WB + d[3:6],
-        x.v_WB + d[6:9],
-        x.gyro_bias_rad_s + d[9:12],
-        x.accel_bias_m_s2 + d[12:15],
-    )
-
-
-def _boxminus(a: ImuValues, b: ImuValues) -> np.ndarray:
-    return np.concatenate(
-        [
-            log_so3(b.R_WB.T @ a.R_WB),
-            a.p_WB - b.p_WB,
-            a.v_WB - b.v_WB,
-            a.gyro_bias_rad_s - b.gyro_bias_rad_s,
-            a.accel_bias_m_s2 - b.accel_bias_m_s2,
-        ]
-    )
 
 
 def test_select_imu_readings_interpolates_the_ends():

@@ -181,6 +181,29 @@ class LazyCovarianceEstimate(StateEstimate):
         put(self, "_cov", cov)
         put(self, "_source", source)
 
+    @classmethod
+    def from_chain(
+        cls, chain: PredictionChain, index: int, vals: ImuValues, omega_B_rad_s: np.ndarray
+    ) -> LazyCovarianceEstimate:
+        """The estimate at ``chain.advance``'s ``(index, vals)``: the mean copied, the covariance when read.
+
+        Args:
+            chain: The prediction chain (its ``t_s`` is the estimate's time).
+            index: The index ``chain.advance`` returned.
+            vals: The values ``chain.advance`` returned (copied, so the chain may move on).
+            omega_B_rad_s: Corrected body rate (rad/s), shape (3,).
+        """
+        return cls(
+            chain.t_s,
+            vals.R_WB.copy(),
+            vals.p_WB.copy(),
+            vals.v_WB.copy(),
+            vals.gyro_bias_rad_s.copy(),
+            vals.accel_bias_m_s2.copy(),
+            omega_B_rad_s,
+            source=(chain, index),
+        )
+
     @property
     def cov(self) -> np.ndarray:
         """Error-state covariance of ``[dtheta, dp, dv, dbg, dba]``, shape (15, 15) (see StateEstimate)."""

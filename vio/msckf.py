@@ -216,16 +216,7 @@ class MsckfEstimator:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
             if st.intrinsics is not None:
                 omega = st.intrinsics.T_g @ omega
-        return LazyCovarianceEstimate(
-            chain.t_s,
-            vals.R_WB.copy(),
-            vals.p_WB.copy(),
-            vals.v_WB.copy(),
-            vals.gyro_bias_rad_s.copy(),
-            vals.accel_bias_m_s2.copy(),
-            omega,
-            source=(chain, index),
-        )
+        return LazyCovarianceEstimate.from_chain(chain, index, vals, omega)
 
     def health(self) -> HealthStatus:
         """Health after the latest camera frame."""

@@ -134,16 +134,7 @@ class _Coaster:
         omega = np.zeros(3)
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
-        return LazyCovarianceEstimate(
-            chain.t_s,
-            vals.R_WB.copy(),
-            vals.p_WB.copy(),
-            vals.v_WB.copy(),
-            vals.gyro_bias_rad_s.copy(),
-            vals.accel_bias_m_s2.copy(),
-            omega,
-            source=(chain, index),
-        )
+        return LazyCovarianceEstimate.from_chain(chain, index, vals, omega)
 
 
 class RecoveringEstimator:
