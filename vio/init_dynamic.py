@@ -33,7 +33,7 @@ Steps of :func:`dynamic_alignment`:
    covariance of the estimate (:func:`_observability`) from the image noise (the reduced information,
    noise the residual RMS, at least ``pixel_sigma_px``, with the bias prior) and from the IMU
    (:mod:`viotb.vio.init_dynamic_cov`: preintegration noise, bias random walk, and the scale-factor and
-   misalignment errors that no estimator here calibrates), propagated through the solve. The relative
+   misalignment errors that the initializer does not calibrate), propagated through the solve. The relative
    1-sigma of the metric scale (the larger of those of the trajectory length, :func:`_trajectory_scale`,
    and of the speed at the newest sample) and the 1-sigma of the gravity direction at the newest sample
    must be below ``max_scale_sigma`` / ``max_tilt_sigma_rad``. Constant velocity, rest or pure rotation

@@ -94,8 +94,8 @@ class InitParams:
         sigma_gyro_bias_rad_s: Floor of the reported gyro-bias 1-sigma (rad/s).
         sigma_accel_bias_m_s2: Accelerometer-bias 1-sigma (m/s^2): the prior of the dynamic solve and the
             reported sigma (static init observes only its component along gravity).
-        imu_scale_sigma: 1-sigma of the IMU's scale-factor errors (both sensors), which no estimator here
-            calibrates: they enter the dynamic solve's uncertainty (0.2 %, the ADIS16448 model's).
+        imu_scale_sigma: 1-sigma of the IMU's scale-factor errors (both sensors), which the initializer
+            does not calibrate: they enter the dynamic solve's uncertainty (0.2 %, the ADIS16448 model's).
         imu_misalignment_sigma_rad: 1-sigma of its axis misalignments (rad; 0.05 deg, the same model's).
     """
 

@@ -153,7 +153,7 @@ _PRESETS: dict[str, ImuModelParams] = {
     "icm42688-1khz": _ICM42688,
     # The same part after a factory calibration of its intrinsics, as headsets ship: the residual
     # scale-factor and misalignment errors a rate-table / six-position calibration leaves, 10x below the raw
-    # part's. The estimators here estimate biases only, so these errors are what they do not model.
+    # part's. Unless the MSCKF estimates the intrinsics (MsckfParams.imu_intrinsics), these are unmodeled.
     "icm42688-1khz-calibrated": replace(
         _ICM42688, gyro_scale_sigma=2e-4, accel_scale_sigma=2e-4, misalignment_sigma_rad=0.01 * _DEG
     ),
