@@ -2,8 +2,6 @@
 
 import numpy as np
 import pytest
-from imu_values_ops import boxminus as _boxminus
-from imu_values_ops import boxplus as _boxplus
 from random_states import random_imu_values
 from viotb.vio.imu_intrinsics import ImuIntrinsics, correct_readings
 from viotb.vio.imu_prediction import PredictionChain
@@ -11,6 +9,8 @@ from viotb.vio.lie import exp_so3, log_so3
 from viotb.vio.propagator import Integration, Propagator, propagate_values
 from viotb.vio.state import IMU_DIM, ImuValues, State, ekf_update
 from viotb.vio.types import ImuNoise, ImuSample
+from viotb.vio.window_factors import boxminus as _boxminus
+from viotb.vio.window_factors import retract as _boxplus
 
 
 def _random_intrinsics(rng: np.random.Generator) -> ImuIntrinsics:

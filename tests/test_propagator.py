@@ -2,8 +2,6 @@
 
 import numpy as np
 import pytest
-from imu_values_ops import boxminus as _boxminus
-from imu_values_ops import boxplus as _boxplus
 from random_states import random_imu_values
 from viotb.vio.lie import exp_so3, log_so3, skew
 from viotb.vio.propagator import (
@@ -17,6 +15,8 @@ from viotb.vio.propagator import (
 )
 from viotb.vio.state import IMU_BLOCK, ImuValues, State, is_psd, marginal_covariance
 from viotb.vio.types import GRAVITY_M_S2, ImuNoise, ImuSample, gravity_W
+from viotb.vio.window_factors import boxminus as _boxminus
+from viotb.vio.window_factors import retract as _boxplus
 
 
 def test_select_imu_readings_interpolates_the_ends():
