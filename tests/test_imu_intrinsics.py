@@ -183,8 +183,7 @@ def test_msckf_estimates_the_gyro_matrix_on_a_synthetic_flight():
     its sigmas fall to a quarter of the 0.02 prior or less (measured 1.2e-3-5.0e-3: the yaw-rate column,
     excited by a near-constant 0.4 rad/s, is the least known) and the position NEES stays consistent.
     """
-    from test_msckf import SyntheticWorld
-    from viotb.vio.initialization import InitResult
+    from test_msckf import SyntheticWorld, perturbed_truth_start
     from viotb.vio.msckf import MsckfEstimator
     from viotb.vio.msckf_params import MsckfParams
     from viotb.vio.types import CameraFrame
@@ -200,13 +199,7 @@ def test_msckf_estimates_the_gyro_matrix_on_a_synthetic_flight():
     M = np.eye(3) + np.diag([1e-2, -8e-3, 6e-3])
     M[~np.eye(3, dtype=bool)] = [5e-3, -6e-3, 4e-3, -5e-3, 7e-3, 3e-3]
     imu_dt = 1.0 / 200.0
-    bg, ba = rng.normal(0.0, 0.002, 3), rng.normal(0.0, 0.02, 3)
-    R0, p0, v0, _, _ = world.pose(0.0)
-    cov_diag = np.array([1e-4] * 3 + [1e-4] * 3 + [1e-4] * 3 + [0.002**2] * 3 + [0.02**2] * 3)
-    d = rng.normal(0.0, np.sqrt(cov_diag))
-    init = InitResult(
-        0.0, R0 @ exp_so3(d[0:3]), p0 + d[3:6], v0 + d[6:9], bg + d[9:12], ba + d[12:15], "truth", cov_diag
-    )
+    init, bg, ba = perturbed_truth_start(world, rng)
     est.initialize(init)
     nees = []
     for k in range(1, int(20.0 / imu_dt) + 1):

@@ -82,14 +82,14 @@ class SyntheticWorld:
         return FeatureObservations(np.nonzero(front)[0][ok].astype(np.int64), uv[ok])
 
 
-def run_synthetic(seed: int, seconds: float, params: MsckfParams | None = None, sigma_px: float = 0.5):
-    """Fly the synthetic world; returns per-frame (t, p_err, P_pp, R_err_rad, P_tt (world), truth R)."""
-    rng = np.random.default_rng(seed)
-    world = SyntheticWorld(np.random.default_rng(1000 + seed))
-    noise = ImuNoise()
-    prm = params if params is not None else MsckfParams(frontend="sim", pixel_sigma_px=sigma_px)
-    est = MsckfEstimator(world.calib, noise, prm)
-    imu_dt, cam_every = 1.0 / 200.0, 10
+def perturbed_truth_start(
+    world: SyntheticWorld, rng: np.random.Generator
+) -> tuple[InitResult, np.ndarray, np.ndarray]:
+    """Draw the IMU's true biases, then an initialization at t = 0 off the truth by its own covariance.
+
+    Returns:
+        ``(init, gyro_bias_rad_s (3,), accel_bias_m_s2 (3,))``: the init record and the true biases.
+    """
     bg = rng.normal(0.0, 0.002, 3)
     ba = rng.normal(0.0, 0.02, 3)
     R0, p0, v0, _, _ = world.pose(0.0)
@@ -98,6 +98,18 @@ def run_synthetic(seed: int, seconds: float, params: MsckfParams | None = None, 
     init = InitResult(
         0.0, R0 @ exp_so3(d[0:3]), p0 + d[3:6], v0 + d[6:9], bg + d[9:12], ba + d[12:15], "truth", cov_diag
     )
+    return init, bg, ba
+
+
+def run_synthetic(seed: int, seconds: float, params: MsckfParams | None = None, sigma_px: float = 0.5):
+    """Fly the synthetic world; returns per-frame (t, p_err, P_pp, R_err_rad, P_tt (world), truth R)."""
+    rng = np.random.default_rng(seed)
+    world = SyntheticWorld(np.random.default_rng(1000 + seed))
+    noise = ImuNoise()
+    prm = params if params is not None else MsckfParams(frontend="sim", pixel_sigma_px=sigma_px)
+    est = MsckfEstimator(world.calib, noise, prm)
+    imu_dt, cam_every = 1.0 / 200.0, 10
+    init, bg, ba = perturbed_truth_start(world, rng)
     est.initialize(init)
     rows = []
     n = int(seconds / imu_dt)
