@@ -2,25 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
-from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
+from data_paths import load_repo_script
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "train_hover_sb3.py"
-
 
 def _load_example():
-    spec = importlib.util.spec_from_file_location("train_hover_sb3", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_repo_script("examples/train_hover_sb3.py")
 
 
 def test_kinematic_observation_drops_health_entries():

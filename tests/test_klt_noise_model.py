@@ -8,26 +8,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
+from data_paths import load_repo_script
 from viotb.vio.msckf_params import (
     RENDER_KLT_PIXEL_SIGMA_PX,
     RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
     MsckfParams,
 )
 
-_BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "klt_track_error.py"
-
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("klt_track_error", _BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_repo_script("benchmarks/klt_track_error.py")
 
 
 def _tracks(rng: np.random.Generator, s_w: float, q: float, n: int, slide_share: float) -> dict:
