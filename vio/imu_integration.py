@@ -381,7 +381,7 @@ def integrate_batch(
     dt: np.ndarray,
     method: Integration,
     imu_fej: ImuValues | None = None,
-) -> tuple[ImuValues, np.ndarray]:
+) -> tuple[ImuValues, np.ndarray, tuple]:
     """:func:`integrate_step` over consecutive intervals at once: the mean chained, ``Phi`` stacked.
 
     Only the rotation and position chains are Python loops (a 3x3 product, two 3-vector sums per interval,
@@ -400,25 +400,8 @@ def integrate_batch(
         imu_fej: First estimates at the start of the first interval (None: ``imu``).
 
     Returns:
-        ``(state at the end, phi (m, 15, 15))``, ``phi[k]`` the transition of interval k.
-    """
-    new, phi, _ = integrate_batch_parts(imu, w0, w1, a0, a1, dt, method, imu_fej)
-    return new, phi
-
-
-def integrate_batch_parts(
-    imu: ImuValues,
-    w0: np.ndarray,
-    w1: np.ndarray,
-    a0: np.ndarray,
-    a1: np.ndarray,
-    dt: np.ndarray,
-    method: Integration,
-    imu_fej: ImuValues | None = None,
-) -> tuple[ImuValues, np.ndarray, tuple]:
-    """:func:`integrate_batch` (the same arguments) that also returns ``(R0, R1, Jr, rk4)``.
-
-    Those are what :func:`intrinsic_columns` takes (``rk4`` None for DISCRETE).
+        ``(state at the end, phi (m, 15, 15), parts)``: ``phi[k]`` the transition of interval k, and
+        ``parts = (R0, R1, Jr, rk4)`` what :func:`intrinsic_columns` takes (``rk4`` None for DISCRETE).
     """
     g = gravity_W()
     m = dt.shape[0]

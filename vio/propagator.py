@@ -41,7 +41,6 @@ from viotb.vio.imu_integration import (
     discrete_noise_batch,
     extend_transition,
     integrate_batch,
-    integrate_batch_parts,
     integrate_mean,
     integrate_step,
     intrinsic_columns,
@@ -234,7 +233,7 @@ def propagate_values(
         cur, phi1 = integrate_step(imu, w[j], w[j + 1], a[j], a[j + 1], dt_j, method, imu_fej)
         return cur, phi1, discrete_noise(phi1, noise, dt_j)
     dt = dt[k]
-    cur, phi, parts = integrate_batch_parts(imu, w[k], w[k + 1], a[k], a[k + 1], dt, method, imu_fej)
+    cur, phi, parts = integrate_batch(imu, w[k], w[k + 1], a[k], a[k + 1], dt, method, imu_fej)
     if intrinsics is not None:
         wr, ar = gyro - imu.gyro_bias_rad_s, accel - imu.accel_bias_m_s2
         raw = np.stack([wr[k], wr[k + 1], ar[k], ar[k + 1]], axis=1)
