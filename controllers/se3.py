@@ -245,9 +245,9 @@ class SE3Controller:
         (shapes checked, finiteness by one sum) instead of being copied into a validated record. An estimate
         the record would reject takes the record's path, so the same ``ValueError`` names the field.
         """
-        arrays = (estimate.R_WB, estimate.p_WB, estimate.v_WB, estimate.omega_B_rad_s)
-        if tuple(a.shape for a in arrays) == _NAV_SHAPES:
-            R, p, v, w = (a.tolist() for a in arrays)
+        R_a, p_a, v_a, w_a = estimate.R_WB, estimate.p_WB, estimate.v_WB, estimate.omega_B_rad_s
+        if (R_a.shape, p_a.shape, v_a.shape, w_a.shape) == _NAV_SHAPES:
+            R, p, v, w = R_a.tolist(), p_a.tolist(), v_a.tolist(), w_a.tolist()
             if math.isfinite(sum(R[0]) + sum(R[1]) + sum(R[2]) + sum(p) + sum(v) + sum(w)):
                 return self._thrusts_f(t_s, R, p, v, w, setpoint)[0]
         return self.thrusts(t_s, NavState.from_estimate(estimate), setpoint)
@@ -325,8 +325,8 @@ class SE3Controller:
             if 0.0 < dt <= _MAX_INTEGRATION_STEP_S:
                 ig = (ig[0] + e_p[0] * dt, ig[1] + e_p[1] * dt, ig[2] + e_p[2] * dt)
         self._last_t_s = float(t_s)
-        lim = self._integral_limit_m_s
-        self._integral_m_s = tuple(min(max(x, -b), b) for x, b in zip(ig, lim, strict=True))
+        (i0, i1, i2), (b0, b1, b2) = ig, self._integral_limit_m_s
+        self._integral_m_s = (min(max(i0, -b0), b0), min(max(i1, -b1), b1), min(max(i2, -b2), b2))
 
     def _limit_tilt(self, f0: float, f1: float, f2: float) -> tuple[float, float, float]:
         """Keep the vertical force above ``min_thrust_fraction m g`` and the tilt below ``max_tilt_rad``."""

@@ -17,12 +17,14 @@ Every generator has ``sample(t_s) -> FlatOutput`` (time relative to its own star
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from viotb.controllers.profiles import min_jerk_segment, phase_ramp, phase_ramp_up_down
 from viotb.controllers.types import FlatOutput
 
 _CONTINUITY_TOL_M = 1e-3
@@ -57,44 +59,6 @@ def _positive(owner: str, name: str, value: float) -> float:
     if not (np.isfinite(value) and value > 0.0):
         raise ValueError(f"{owner}.{name} must be positive and finite, got {value!r}")
     return float(value)
-
-
-def min_jerk_profile(tau: float) -> tuple[float, float, float, float]:
-    """Rest-to-rest minimum-jerk blend ``s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5`` and its 3 derivatives.
-
-    Args:
-        tau: Normalised time, clamped to [0, 1].
-
-    Returns:
-        ``(s, ds/dtau, d2s/dtau2, d3s/dtau3)``; the first two derivatives vanish at both ends; the third is
-        zero outside ``[0, 1)`` (at rest before the start and from the end on).
-    """
-    t = min(max(tau, 0.0), 1.0)
-    s = t**3 * (10.0 - 15.0 * t + 6.0 * t * t)
-    ds = 30.0 * t * t * (1.0 - t) ** 2
-    d2s = 60.0 * t * (1.0 - t) * (1.0 - 2.0 * t)
-    d3s = 60.0 * (1.0 - 6.0 * t + 6.0 * t * t) if 0.0 <= tau < 1.0 else 0.0
-    return s, ds, d2s, d3s
-
-
-def _min_jerk_segment(
-    p0: np.ndarray, p1: np.ndarray, yaw0: float, yaw1: float, duration_s: float, t_s: float
-) -> FlatOutput:
-    """Sample a rest-to-rest minimum-jerk move from ``(p0, yaw0)`` to ``(p1, yaw1)`` at ``t_s``."""
-    s, ds, d2s, d3s = min_jerk_profile(t_s / duration_s)
-    a = np.asarray(p0, dtype=float).tolist()
-    dp = [b - x for b, x in zip(np.asarray(p1, dtype=float).tolist(), a, strict=True)]
-    dyaw, T = yaw1 - yaw0, duration_s
-    T2, T3 = T**2, T**3
-    # Per axis in plain floats: the same operations as the 3-vector expressions, without numpy's overhead.
-    return FlatOutput(
-        p_W=[x + s * d for x, d in zip(a, dp, strict=True)],
-        v_W=[d * ds / T for d in dp],
-        a_W=[d * d2s / T2 for d in dp],
-        j_W=[d * d3s / T3 for d in dp],
-        yaw_rad=yaw0 + s * dyaw,
-        yaw_rate_rad_s=dyaw * ds / T,
-    )
 
 
 @dataclass(frozen=True)
@@ -169,6 +133,11 @@ class Waypoints:
         self._yaws = yaws
         self._times = times
         self._starts = np.concatenate([[0.0], np.cumsum(times)])
+        # The same values as plain floats for the per-tick sample (a bisection on a list, no numpy calls).
+        self._points_f = points.tolist()
+        self._yaws_f = yaws.tolist()
+        self._times_f = times.tolist()
+        self._starts_f = self._starts.tolist()
 
     @property
     def duration_s(self) -> float:
@@ -182,15 +151,17 @@ class Waypoints:
 
     def sample(self, t_s: float) -> FlatOutput:
         """Flat output at ``t_s`` (s); before 0 the first point, after the end the last point, at rest."""
-        t = min(max(float(t_s), 0.0), self.duration_s)
-        k = int(np.clip(np.searchsorted(self._starts, t, side="right") - 1, 0, len(self._times) - 1))
-        return _min_jerk_segment(
-            self._points[k],
-            self._points[k + 1],
-            float(self._yaws[k]),
-            float(self._yaws[k + 1]),
-            float(self._times[k]),
-            t - float(self._starts[k]),
+        starts = self._starts_f
+        t = min(max(float(t_s), 0.0), starts[-1])
+        # np.searchsorted(starts, t, side="right") - 1, clipped to a segment.
+        k = min(max(bisect.bisect_right(starts, t) - 1, 0), len(self._times_f) - 1)
+        return min_jerk_segment(
+            self._points_f[k],
+            self._points_f[k + 1],
+            self._yaws_f[k],
+            self._yaws_f[k + 1],
+            self._times_f[k],
+            t - starts[k],
         )
 
 
@@ -215,40 +186,15 @@ class Takeoff(Waypoints):
         )
 
 
-def _phase_ramp(t_s: float, ramp_s: float) -> tuple[float, float, float, float]:
-    """Time warp whose rate rises from 0 to 1 over ``ramp_s`` by the min-jerk blend, and its derivatives.
-
-    ``w(t) = ramp_s * (2.5 tau^4 - 3 tau^5 + tau^6)`` for ``tau = t / ramp_s < 1`` (the blend's integral),
-    ``w(t) = t - ramp_s / 2`` after. Returns ``(w, dw/dt, d2w/dt2, d3w/dt3)``.
-    """
-    if t_s <= 0.0:
-        return 0.0, 0.0, 0.0, 0.0
-    if t_s >= ramp_s:
-        return t_s - 0.5 * ramp_s, 1.0, 0.0, 0.0
-    tau = t_s / ramp_s
-    s, ds, d2s, _ = min_jerk_profile(tau)
-    return ramp_s * tau**4 * (2.5 - 3.0 * tau + tau * tau), s, ds / ramp_s, d2s / ramp_s**2
-
-
-def _phase_ramp_up_down(t_s: float, duration_s: float, ramp_s: float) -> tuple[float, float, float, float]:
-    """:func:`_phase_ramp` at the start, mirrored at the end.
-
-    The warped time runs from 0 to ``duration_s - ramp_s`` with zero rate (and derivatives) at both ends.
-    """
-    if t_s <= 0.5 * duration_s:
-        return _phase_ramp(t_s, ramp_s)
-    w, dw, d2w, d3w = _phase_ramp(duration_s - t_s, ramp_s)
-    return duration_s - ramp_s - w, dw, -d2w, d3w
-
-
 @dataclass(frozen=True)
 class StraightLine:
     """A straight line flown at a constant speed between a smooth start and a smooth stop.
 
     No acceleration while cruising: the lesson's "constant velocity", under which scale is unobservable.
 
-    ``p(t) = start + u * speed * w(t)`` with the warped time ``w`` of :func:`_phase_ramp_up_down`: its rate
-    ramps from 0 to 1 over ``ramp_s``, stays 1, and ramps back to 0, ending at rest ``length_m`` along ``u``.
+    ``p(t) = start + u * speed * w(t)`` with the warped time ``w`` of
+    :func:`~viotb.controllers.profiles.phase_ramp_up_down`: its rate ramps from 0 to 1 over ``ramp_s``, stays
+    1, and ramps back to 0, ending at rest ``length_m`` along ``u``.
 
     Attributes:
         start_W_m: Start (m), shape (3,).
@@ -285,7 +231,7 @@ class StraightLine:
     def sample(self, t_s: float) -> FlatOutput:
         """Flat output at ``t_s`` (s)."""
         t = min(max(float(t_s), 0.0), self.duration_s)
-        w, dw, d2w, d3w = _phase_ramp_up_down(t, self.duration_s, self.ramp_s)
+        w, dw, d2w, d3w = phase_ramp_up_down(t, self.duration_s, self.ramp_s)
         u = self.direction_W * self.speed_m_s
         return FlatOutput(
             p_W=self.start_W_m + u * w, v_W=u * dw, a_W=u * d2w, j_W=u * d3w, yaw_rad=self.yaw_rad
@@ -337,8 +283,8 @@ class FigureEight:
     def _warp(self, t_s: float) -> tuple[float, float, float, float]:
         """Warped time and its three derivatives, with the ramp-down mirrored at the end."""
         if self.laps is None:
-            return _phase_ramp(t_s, self.ramp_s)
-        return _phase_ramp_up_down(t_s, self.duration_s, self.ramp_s)
+            return phase_ramp(t_s, self.ramp_s)
+        return phase_ramp_up_down(t_s, self.duration_s, self.ramp_s)
 
     def sample(self, t_s: float) -> FlatOutput:
         """Flat output at ``t_s`` (s), by the chain rule through the warped phase."""
@@ -405,6 +351,15 @@ class ExcitationManeuver:
         # The four channels (x, y, z, yaw), stacked once rather than at every sample.
         object.__setattr__(self, "_amplitudes", np.append(self.amplitude_m, self.yaw_amplitude_rad))
         object.__setattr__(self, "_frequencies", np.append(self.frequency_hz, self.yaw_frequency_hz))
+        # What _sine computes from the frequencies alone, once: w = 2 pi f (the array np.sin/np.cos take),
+        # and w, -(w^2), -(w^3) and the amplitudes as floats (the same numpy operations, then .tolist()).
+        w = 2.0 * math.pi * self._frequencies
+        object.__setattr__(self, "_omega_rad_s", w)
+        object.__setattr__(
+            self,
+            "_sine_factors",
+            (w.tolist(), (-(w**2)).tolist(), (-(w**3)).tolist(), self._amplitudes.tolist()),
+        )
 
     def _window(self, t: float) -> tuple[float, float, float, float]:
         """``h = sin^2(pi t / T) = (1 - cos(2 pi t / T)) / 2`` and its 3 derivatives."""
@@ -427,7 +382,15 @@ class ExcitationManeuver:
         """Flat output at ``t_s`` (s); Leibniz rule for the windowed sines."""
         t = min(max(float(t_s), 0.0), self.duration_s)
         h0, h1, h2, h3 = self._window(t)
-        g0, g1, g2, g3 = self._sine(self._amplitudes, self._frequencies, t).tolist()
+        # _sine(amplitudes, frequencies, t) with its frequency terms precomputed: np.sin / np.cos of the same
+        # array w t, then per channel A s, A (w c), A ((-w^2) s), A ((-w^3) c) in floats (the same products).
+        wt = self._omega_rad_s * t
+        sin, cos = np.sin(wt).tolist(), np.cos(wt).tolist()
+        w1, w2, w3, amp = self._sine_factors
+        g0 = [a * s for a, s in zip(amp, sin, strict=True)]
+        g1 = [a * (w * c) for a, w, c in zip(amp, w1, cos, strict=True)]
+        g2 = [a * (w * s) for a, w, s in zip(amp, w2, sin, strict=True)]
+        g3 = [a * (w * c) for a, w, c in zip(amp, w3, cos, strict=True)]
         # d^n/dt^n (h g) = sum_k C(n, k) h^(k) g^(n-k) per channel, in plain floats: the same products and
         # left-to-right sums, from 0, as the former array expression (binomial rows 1; 1 1; 1 2 1; 1 3 3 1).
         d = [
@@ -440,13 +403,13 @@ class ExcitationManeuver:
             ],
         ]
         cx, cy, cz = self.center_W_m.tolist()
-        return FlatOutput(
-            p_W=[cx + d[0][0], cy + d[0][1], cz + d[0][2]],
-            v_W=d[1][:3],
-            a_W=d[2][:3],
-            j_W=d[3][:3],
-            yaw_rad=self.yaw_center_rad + d[0][3],
-            yaw_rate_rad_s=d[1][3],
+        return FlatOutput.from_floats(
+            [cx + d[0][0], cy + d[0][1], cz + d[0][2]],
+            d[1][:3],
+            d[2][:3],
+            d[3][:3],
+            self.yaw_center_rad + d[0][3],
+            d[1][3],
         )
 
 
@@ -494,5 +457,5 @@ class Sequence:
 
     def sample(self, t_s: float) -> FlatOutput:
         """Flat output of the item active at ``t_s`` (s), in that item's local time."""
-        k = max(0, int(np.searchsorted(self._starts, float(t_s), side="right")) - 1)
+        k = max(0, bisect.bisect_right(self._starts, float(t_s)) - 1)  # np.searchsorted(side="right")
         return self._items[k].sample(float(t_s) - self._starts[k])

@@ -93,6 +93,39 @@ class FlatOutput:
                 raise ValueError(f"FlatOutput.{name}: non-finite value {value}")
             object.__setattr__(self, name, value)
 
+    @classmethod
+    def from_floats(
+        cls, p_W: list, v_W: list, a_W: list, j_W: list, yaw_rad: float, yaw_rate_rad_s: float
+    ) -> FlatOutput:
+        """The record ``FlatOutput(p_W, v_W, a_W, j_W, yaw_rad, yaw_rate_rad_s)`` from plain floats.
+
+        The setpoint generators' per-tick constructor: one float buffer of the 12 vector entries (read-only
+        views, as the validating constructor stores them) and one finiteness test on a sum, about a fifth of
+        the validating path's cost. A sum that is not finite (a non-finite entry, or finite ones whose sum
+        overflows) takes the validating constructor, which raises its own error or builds the same record.
+
+        Args:
+            p_W: Position (m) in W, 3 floats.
+            v_W: Velocity (m/s), 3 floats.
+            a_W: Acceleration (m/s^2), 3 floats.
+            j_W: Jerk (m/s^3), 3 floats.
+            yaw_rad: Heading (rad).
+            yaw_rate_rad_s: Its time derivative (rad/s).
+        """
+        values = [*p_W, *v_W, *a_W, *j_W]
+        yaw, rate = float(yaw_rad), float(yaw_rate_rad_s)
+        sizes_ok = len(p_W) == len(v_W) == len(a_W) == len(j_W) == 3
+        if not (sizes_ok and math.isfinite(sum(values) + yaw + rate)):
+            return cls(p_W=p_W, v_W=v_W, a_W=a_W, j_W=j_W, yaw_rad=yaw_rad, yaw_rate_rad_s=yaw_rate_rad_s)
+        buf = np.array(values, dtype=float)
+        buf.setflags(write=False)
+        out = object.__new__(cls)  # the fields below are what __post_init__ would store
+        for name, start in (("p_W", 0), ("v_W", 3), ("a_W", 6), ("j_W", 9)):
+            object.__setattr__(out, name, buf[start : start + 3])
+        object.__setattr__(out, "yaw_rad", yaw)
+        object.__setattr__(out, "yaw_rate_rad_s", rate)
+        return out
+
 
 @dataclass(frozen=True)
 class NavState:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from viotb.controllers import se3
 from viotb.controllers.types import NavState
-from viotb.envs.gym import rewards
+from viotb.envs.gym import base, info, rewards
 from viotb.envs.gym.base import VioQuadEnv
 from viotb.envs.gym.hover import HoverEnv
 from viotb.envs.run.closed_loop import _COS_MAX_TILT, ClosedLoopSim, TruthState
@@ -57,7 +57,11 @@ def _old_apply_wind(self, dt):
         noise = self._rng_wind.standard_normal(3) * w.gust_sigma_N * np.sqrt(1.0 - a * a)
         noise[2] = 0.0
         self._wind_gust_W = a * np.asarray(self._wind_gust_W) + noise
-    self.sim.data.xfrc_applied[self._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
+    self.sim.data.xfrc_applied[self.sim._body_id, :3] = np.asarray(w.mean_force_W_N) + self._wind_gust_W
+
+
+def _old_set_body_force_W(self, fx, fy, fz):
+    self.data.xfrc_applied[self._body_id, :3] = (fx, fy, fz)
 
 
 def _old_thrusts_from_estimate(self, t_s, est, setpoint):
@@ -80,6 +84,31 @@ def _old_update_target(self):
 
 def _old_outside_arena(self, p_W):
     return bool((p_W < np.array(self._arena_lo)).any() or (p_W > np.array(self._arena_hi)).any())
+
+
+def _old_check_action(self, action):
+    a = np.asarray(action, dtype=float)
+    if a.shape != (4,) or not np.isfinite(a).all():
+        raise ValueError("bad action")
+    return a.clip(-1.0, 1.0)
+
+
+def _old_state_vector(self):
+    est, health = self._loop.estimate(), self._loop.health()
+    var = est.cov.diagonal()
+    parts = [
+        est.p_WB - self._target_est,
+        est.v_WB,
+        np.concatenate([est.R_WB[:, 0], est.R_WB[:, 1]]),
+        est.omega_B_rad_s,
+        self._target_est,
+        self._target_v_est,
+        var[3:6],
+        var[6:9],
+        [float(health.tracked_features)],
+    ]
+    vec = np.nan_to_num(np.concatenate(parts, dtype=np.float32), nan=0.0, posinf=1e6, neginf=-1e6)
+    return np.clip(vec, self._state_low, self._state_high)
 
 
 def _assert_same(a, b, where):
@@ -106,6 +135,11 @@ def _rollout(kwargs, actions, old: bool, monkeypatch):
             m.setattr(Simulation, "step_checked", _old_step_checked)
             m.setattr(VioQuadEnv, "_update_target", _old_update_target)
             m.setattr(VioQuadEnv, "_outside_arena", _old_outside_arena)
+            m.setattr(VioQuadEnv, "_check_action", _old_check_action)
+            m.setattr(VioQuadEnv, "_state_vector", _old_state_vector)
+            m.setattr(info, "norm3", lambda v: float(np.linalg.norm(v)))
+            m.setattr(base, "norm3", lambda v: float(np.linalg.norm(v)))
+            m.setattr(Simulation, "set_body_force_W", _old_set_body_force_W)
             m.setattr(rewards, "_sum_sq_diff", lambda a, b: np.sum((a - b) ** 2))
         env = HoverEnv(**kwargs)
         out = [env.reset(seed=3)]

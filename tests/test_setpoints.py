@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from viotb.controllers.profiles import min_jerk_profile
 from viotb.controllers.setpoints import (
     ExcitationManeuver,
     FigureEight,
@@ -15,7 +16,6 @@ from viotb.controllers.setpoints import (
     StraightLine,
     Takeoff,
     Waypoints,
-    min_jerk_profile,
 )
 
 _H_S = 1e-5

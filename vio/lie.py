@@ -8,6 +8,8 @@ TRO 2017, eqs. 7-9; Barfoot, "State Estimation for Robotics", sec. 7.1).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 _SMALL_ANGLE_RAD = 1e-8
@@ -100,16 +102,25 @@ def right_jacobian_inv_so3(phi: np.ndarray) -> np.ndarray:
 
 def quat_wxyz_to_rotmat(quat_wxyz: np.ndarray) -> np.ndarray:
     """Hamilton unit quaternion (w, x, y, z), shape (4,) -> rotation matrix, shape (3, 3)."""
-    # Plain floats after the (numpy) normalisation: the same IEEE operations as on numpy scalars, 10x cheaper.
+    return np.array(quat_wxyz_to_rotmat_rows(quat_wxyz)).reshape(3, 3)
+
+
+def quat_wxyz_to_rotmat_rows(quat_wxyz: np.ndarray) -> list[float]:
+    """:func:`quat_wxyz_to_rotmat` as 9 plain floats, row by row (for callers that pack their own arrays).
+
+    The quaternion is normalised by ``np.linalg.norm``'s own formula for a real vector (``sqrt(q . q)``, the
+    dot product in numpy, so summed as ``norm`` sums it); the division and the products are the same IEEE
+    operations in plain floats as on numpy scalars, several times cheaper.
+    """
     q = np.asarray(quat_wxyz, dtype=float).ravel()
-    w, x, y, z = (q / np.sqrt(q.dot(q))).tolist()  # np.linalg.norm's own formula for a real vector
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    n = math.sqrt(q.dot(q))
+    # A zero (or NaN) norm takes numpy's division, which gives NaN or inf where plain floats would raise.
+    w, x, y, z = (c / n for c in q.tolist()) if n > 0.0 else (q / np.sqrt(q.dot(q))).tolist()
+    return [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]  # fmt: skip
 
 
 def rotmat_to_quat_wxyz(R: np.ndarray) -> np.ndarray:

@@ -29,25 +29,16 @@ from viotb.controllers import Mixer, SE3Controller, SE3Gains
 from viotb.controllers.types import FlatOutput
 from viotb.envs.gym.config import FAILURE_REASONS, RENDER_CAMERAS, VioEnvConfig, make_config
 from viotb.envs.gym.info import step_info
+from viotb.envs.gym.observation import orientation_features, state_vector_rot6d
 from viotb.envs.gym.rewards import cost_crash, cost_effort, cost_smoothness, reward_tracking
 from viotb.envs.gym.starts import ground_start, place_airborne, randomize_sensor_and_body, rig_config
 from viotb.envs.run.closed_loop import ClosedLoopSim
+from viotb.envs.sim.checks import all_finite, norm3
 from viotb.envs.sim.simulation import Simulation
 from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.models.constants import CHASE_CAMERA, SCENE_BOUNDS_M
-from viotb.vio.lie import cross, rotmat_to_quat_wxyz, yaw_from_rotmat
+from viotb.vio.lie import cross, yaw_from_rotmat
 from viotb.vio.types import StateEstimate
-
-
-def orientation_features(R_WB: np.ndarray, kind: str) -> np.ndarray:
-    """Orientation as network input: ``rot6d`` = ``[R[:, 0], R[:, 1]]`` (6,) or ``quat_wxyz``, w >= 0 (4,).
-
-    Zhou et al., "On the continuity of rotation representations in neural networks", CVPR 2019 (6D).
-    """
-    if kind == "rot6d":
-        return np.concatenate([R_WB[:, 0], R_WB[:, 1]])
-    q = rotmat_to_quat_wxyz(R_WB)
-    return -q if q[0] < 0.0 else q
 
 
 def _whole_multiple(value: float, unit: float, what: str) -> int:
@@ -249,9 +240,11 @@ class VioQuadEnv(gymnasium.Env):
             raise ValueError(
                 f"action must have shape (4,) for action_type {self.config.action_type!r}, got {a.shape}"
             )
-        if not np.isfinite(a).all():
-            raise ValueError(f"action must be finite, got {a.tolist()}")
-        return a.clip(-1.0, 1.0)
+        values = a.tolist()
+        if not all_finite(values):
+            raise ValueError(f"action must be finite, got {values}")
+        # a.clip(-1, 1) entry by entry (the same values, -0.0 kept), without numpy's clip call.
+        return np.array([-1.0 if x < -1.0 else 1.0 if x > 1.0 else x for x in values])
 
     def _thrusts(self, a: np.ndarray, est: StateEstimate) -> np.ndarray:
         """Motor thrusts (N) for action ``a`` on the estimate ``est`` (one low-level tick)."""
@@ -389,7 +382,7 @@ class VioQuadEnv(gymnasium.Env):
             reason = "diverged"
         if not reason and self._outside_arena(tr.p_WB):
             reason = "left_arena"
-        err = float(np.linalg.norm(tr.p_WB - self._target_true_W))
+        err = norm3(tr.p_WB - self._target_true_W)
         if not reason and err > self.config.max_target_distance_m:
             reason = "too_far"
         task_terms, success = self._task_step(tr.p_WB)
@@ -415,6 +408,15 @@ class VioQuadEnv(gymnasium.Env):
     def _state_vector(self) -> np.ndarray:
         est = self._loop.estimate()
         health = self._loop.health()
+        if est is not None and self.config.orientation == "rot6d":
+            return state_vector_rot6d(
+                est,
+                health.tracked_features,
+                self._target_est,
+                self._target_v_est,
+                self._state_low,
+                self._state_high,
+            )
         if est is None:
             parts = [np.zeros(n) for _, n, _, _ in self._state_layout()]
         else:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 from viotb.envs.run.closed_loop import ClosedLoopSim
+from viotb.envs.sim.checks import norm3
 
 
 def step_info(
@@ -44,7 +45,7 @@ def step_info(
     estimate_error_m = np.nan
     if est is not None:
         p_est_W = R_EW.T @ (est.p_WB - t_EW)
-        estimate_error_m = float(np.linalg.norm(p_est_W - tr.p_WB))
+        estimate_error_m = norm3(p_est_W - tr.p_WB)
     info = {"t_s": tr.t_s}
     if mode == "full":
         info.update(
@@ -55,7 +56,7 @@ def step_info(
                 "target_W_m": target_true_W.copy(),
             }
         )
-    info["position_error_m"] = float(np.linalg.norm(tr.p_WB - target_true_W))
+    info["position_error_m"] = norm3(tr.p_WB - target_true_W)
     info["estimate_error_m"] = estimate_error_m
     info["tracked_features"] = int(health.tracked_features)
     if mode == "full":

@@ -150,7 +150,6 @@ class ClosedLoopSim:
         self._blackouts = tuple(cam.blackout_intervals_s)
         self._lights_off = tuple(config.lights_off_intervals_s)
         self._lights = SceneLights(self.sim.model) if self._lights_off else None
-        self._body_id = self.sim.model.body(QUAD_BODY).id
         self._bounds = SCENE_BOUNDS_M.get(config.scene)
         # Crash box: the scene bounds widened by 0.5 m (built once; read every low-level tick).
         # Crash box as float triples (the per-tick test compares floats, not arrays).
@@ -212,11 +211,7 @@ class ClosedLoopSim:
         data = self.sim.data
         key = (data.time, data.qpos.tobytes(), data.qvel.tobytes())
         if key != self._truth_key:
-            R_WB, p_WB = self.sim.pose()
-            tr = TruthState(self.t_s, R_WB, p_WB, self.sim.velocity_W(), self.sim.angular_velocity_B())
-            for arr in (tr.R_WB, tr.p_WB, tr.v_WB, tr.omega_B):
-                arr.setflags(write=False)
-            self._truth_key, self._truth = key, tr
+            self._truth_key, self._truth = key, TruthState(float(key[0]), *self.sim.body_state())
         return self._truth
 
     def estimate(self) -> StateEstimate | None:
@@ -337,7 +332,7 @@ class ClosedLoopSim:
             self._wind_gust_W = (a * g0 + n0 * sigma * scale, a * g1 + n1 * sigma * scale, a * g2 + 0.0)
         m0, m1, m2 = w.mean_force_W_N
         g0, g1, g2 = self._wind_gust_W
-        self.sim.data.xfrc_applied[self._body_id, :3] = (m0 + g0, m1 + g1, m2 + g2)
+        self.sim.set_body_force_W(m0 + g0, m1 + g1, m2 + g2)
 
     def advance(self, thrusts_N: np.ndarray, duration_s: float) -> None:
         """Hold motor thrusts for ``duration_s`` (rounded to physics steps), running sensors and estimator.

@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from viotb.envs.sim.checks import all_finite
 from viotb.vio.types import ImuNoise, ImuSample, ImuSeries
 
 _DEG = math.pi / 180.0
@@ -290,25 +291,28 @@ class ImuModel:
                 "measure expects omega_B_true (3,) and specific_force_B_true (3,); "
                 f"got {omega.shape}, {f.shape}"
             )
-        if not (np.isfinite(omega).all() and np.isfinite(f).all()):
+        if not all_finite(omega.tolist() + f.tolist()):
             raise ValueError("measure: omega_B_true and specific_force_B_true must be finite")
-        draws = self._scaled_draws(1)[0]
-        bias_g, bias_a = self._gyro_bias_rad_s, self._accel_bias_m_s2
-        # Same expression shapes as the series ((1, 3) @ (3, 3)) so BLAS sums in the same order.
-        gyro = (omega[None] @ self._M_gyro.T)[0] + bias_g + draws[0]
-        accel = (f[None] @ self._M_accel.T)[0] + bias_a + draws[1]
-        self._gyro_bias_rad_s = bias_g + draws[2]
-        self._accel_bias_m_s2 = bias_a + draws[3]
+        n_g, n_a, w_g, w_a = self._scaled_draws(1)[0].tolist()
+        bias_g, bias_a = self._gyro_bias_rad_s.tolist(), self._accel_bias_m_s2.tolist()
+        # Same expression shapes as the series ((1, 3) @ (3, 3)) so BLAS sums in the same order; the
+        # elementwise rest in plain floats, the same operations in the same order as the series' arrays.
+        m_g = (omega[None] @ self._M_gyro.T)[0].tolist()
+        m_a = (f[None] @ self._M_accel.T)[0].tolist()
         p = self._params
-        gyro = _quantize(gyro, p.gyro_quantization_rad_s)
-        accel = _quantize(accel, p.accel_quantization_m_s2)
+        q_g, q_a = p.gyro_quantization_rad_s, p.accel_quantization_m_s2
+        gyro = [_quantize_f(x + b + n, q_g) for x, b, n in zip(m_g, bias_g, n_g, strict=True)]
+        accel = [_quantize_f(x + b + n, q_a) for x, b, n in zip(m_a, bias_a, n_a, strict=True)]
+        self._gyro_bias_rad_s = np.array([b + w for b, w in zip(bias_g, w_g, strict=True)])
+        self._accel_bias_m_s2 = np.array([b + w for b, w in zip(bias_a, w_a, strict=True)])
         # The saturation test on plain floats; within range the clip is the identity and is skipped.
         r_g, r_a = p.gyro_range_rad_s, p.accel_range_m_s2
-        saturated = any(abs(x) > r_g for x in gyro.tolist()) or any(abs(x) > r_a for x in accel.tolist())
+        saturated = any(abs(x) > r_g for x in gyro) or any(abs(x) > r_a for x in accel)
         if saturated:
-            gyro = np.clip(gyro, -r_g, r_g)
-            accel = np.clip(accel, -r_a, r_a)
-        return ImuSample(float(t_s), gyro, accel, saturated)
+            return ImuSample(
+                float(t_s), np.clip(np.array(gyro), -r_g, r_g), np.clip(np.array(accel), -r_a, r_a), True
+            )
+        return ImuSample(float(t_s), np.array(gyro), np.array(accel), False)
 
     def measure_series(self, t_s: np.ndarray, omega_B: np.ndarray, f_B: np.ndarray) -> ImuSeries:
         """Readings for N consecutive samples (see :meth:`measure_series_with_biases`)."""
@@ -376,3 +380,16 @@ def _quantize(x: np.ndarray, step: float) -> np.ndarray:
     if step <= 0.0:
         return x
     return np.round(x / step) * step
+
+
+def _quantize_f(x: float, step: float) -> float:
+    """:func:`_quantize` of one float: the same value, the sign of a zero included.
+
+    ``np.round`` rounds half to even (``rint``), as ``round`` does; a multiple rounded to zero keeps the
+    sign of ``x / step`` there (``rint(-0.3) = -0.0``), which the integer from ``round`` has lost.
+    """
+    if step <= 0.0:
+        return x
+    y = x / step
+    k = round(y)
+    return k * step if k else math.copysign(0.0, y) * step

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+from viotb.envs.sim.checks import all_finite
 from viotb.envs.sim.render import camera_world_pose
 from viotb.models import load_model
 from viotb.models.constants import (
@@ -33,7 +34,7 @@ from viotb.models.constants import (
     QUAD_MOTORS,
     VEHICLE_BODIES,
 )
-from viotb.vio.lie import quat_wxyz_to_rotmat, rotmat_to_quat_wxyz
+from viotb.vio.lie import quat_wxyz_to_rotmat, quat_wxyz_to_rotmat_rows, rotmat_to_quat_wxyz
 from viotb.vio.types import gravity_W
 
 _ROTATION_ATOL = 1e-6
@@ -135,6 +136,15 @@ class Simulation:
         self._kin_a_W = np.zeros(3)
         self._forward_key: tuple | None = None  # the state of the last step's closing mj_forward
         self._has_mocap = m.nmocap > 0
+        # Views into ``data``'s arrays, built once (each attribute read of MjData builds a new view): the
+        # per-tick readers and the state key read these; ``data`` is this object's for its whole life.
+        d = self.data
+        self._qpos, self._qvel = d.qpos, d.qvel
+        self._quat_view = d.sensordata[self._imu_quat]
+        self._pos_view = d.sensordata[self._imu_pos]
+        self._gyro_view = d.sensordata[self._gyro]
+        self._accel_view = d.sensordata[self._accel]
+        self._xfrc_body = d.xfrc_applied[self._body_id]
         mujoco.mj_forward(self.model, self.data)
 
     # ------------------------------------------------------------------ time and stepping
@@ -201,7 +211,7 @@ class Simulation:
             ValueError: Wrong shape or non-finite values.
         """
         ctrl = np.asarray(ctrl, dtype=float)
-        if ctrl.shape != (self.model.nu,) or not np.isfinite(ctrl).all():
+        if ctrl.shape != (self.model.nu,) or not all_finite(ctrl.tolist()):
             raise ValueError(f"ctrl must be a finite array of shape ({self.model.nu},), got {ctrl!r}")
         return ctrl
 
@@ -232,7 +242,7 @@ class Simulation:
         d = self.data
         if self._has_mocap:
             return (d.time, d.qpos.tobytes(), d.qvel.tobytes(), d.mocap_pos.tobytes(), d.mocap_quat.tobytes())
-        return (d.time, d.qpos.tobytes(), d.qvel.tobytes())
+        return (d.time, self._qpos.tobytes(), self._qvel.tobytes())
 
     def model_changed(self) -> None:
         """Call after editing the model's parameters (masses, inertias...): the next step starts afresh.
@@ -296,20 +306,43 @@ class Simulation:
         Returns:
             ``(R_WB (3, 3), p_WB (3,) m)``.
         """
-        quat_wxyz = self.data.sensordata[self._imu_quat]
-        return quat_wxyz_to_rotmat(quat_wxyz), self.data.sensordata[self._imu_pos].copy()
+        return quat_wxyz_to_rotmat(self._quat_view), self._pos_view.copy()
+
+    def body_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(*pose(), velocity_W(), angular_velocity_B())`` as read-only views of one buffer.
+
+        The same values as the four readers (the truth of a control tick), packed by one array call.
+
+        Returns:
+            ``(R_WB (3, 3), p_WB (3,) m, v_WB (3,) m/s, omega_B (3,) rad/s)``, read-only.
+        """
+        if self._is_mocap:
+            R_WB, p_WB = self.pose()
+            out = (R_WB, p_WB, self.velocity_W(), self.angular_velocity_B())
+            for arr in out:
+                arr.setflags(write=False)
+            return out
+        a = self._qvel_adr
+        buf = np.array(
+            quat_wxyz_to_rotmat_rows(self._quat_view)
+            + self._pos_view.tolist()
+            + self._qvel[a : a + 3].tolist()
+            + self._gyro_view.tolist()
+        )
+        buf.setflags(write=False)  # before the views: a view of a writable buffer would stay writable
+        return buf[:9].reshape(3, 3), buf[9:12], buf[12:15], buf[15:18]
 
     def velocity_W(self) -> np.ndarray:
         """Velocity of B's origin in W (m/s), shape (3,)."""
         if self._is_mocap:
             return self._kin_v_W.copy()
-        return self.data.qvel[self._qvel_adr : self._qvel_adr + 3].copy()
+        return self._qvel[self._qvel_adr : self._qvel_adr + 3].copy()
 
     def angular_velocity_B(self) -> np.ndarray:
         """Angular rate of B w.r.t. W, in B (rad/s), shape (3,) (the noiseless gyro)."""
         if self._is_mocap:
             return self._kin_omega_B.copy()
-        return self.data.sensordata[self._gyro].copy()
+        return self._gyro_view.copy()
 
     def specific_force_B(self) -> np.ndarray:
         """Specific force ``R_WB^T (a_W - g_W)`` at the IMU, in B (m/s^2), shape (3,) (noiseless accel).
@@ -320,7 +353,7 @@ class Simulation:
         if self._is_mocap:
             R_WB, _ = self.pose()
             return R_WB.T @ (self._kin_a_W - gravity_W())
-        return self.data.sensordata[self._accel].copy()
+        return self._accel_view.copy()
 
     def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Pose of the onboard camera in W, OpenCV convention (x right, y down, z forward).
@@ -330,16 +363,27 @@ class Simulation:
         """
         return camera_world_pose(self.data, self._cam_id)
 
+    def set_body_force_W(self, fx_N: float, fy_N: float, fz_N: float) -> None:
+        """Hold an external force (N, world frame, at the body's centre of mass) on the vehicle's root body.
+
+        MuJoCo's ``xfrc_applied[body, :3]`` (the torque part is left as it is), written entry by entry.
+        """
+        f = self._xfrc_body
+        f[0], f[1], f[2] = fx_N, fy_N, fz_N
+
     def in_collision(self) -> bool:
         """True when any active contact involves a geom of the vehicle.
 
         MuJoCo does not collide mocap bodies with the static world, so the headset never reports contact.
         """
-        contacts = self.data.contact
-        for i in range(self.data.ncon):
-            if int(contacts.geom1[i]) in self._vehicle_geoms or int(contacts.geom2[i]) in self._vehicle_geoms:
-                return True
-        return False
+        d = self.data
+        if d.ncon == 0:
+            return False  # in flight: no contact list to read
+        contacts = d.contact
+        mine = self._vehicle_geoms
+        return any(g in mine for g in contacts.geom1.tolist()) or any(
+            g in mine for g in contacts.geom2.tolist()
+        )
 
     def motor_thrusts_N(self) -> np.ndarray:
         """Thrust of each motor (N), shape (4,) for the quadrotor (after ctrlrange clipping); (0,) headset."""
