@@ -129,7 +129,7 @@ def attitude_error(R_WB: np.ndarray, R_WB_desired: np.ndarray) -> np.ndarray:
 
 
 def _desired_body_rate(
-    b1: tuple, b2: tuple, b3: tuple, thrust_N: float, mass_kg: float, j: list, yaw_rate_rad_s: float
+    b1: tuple, b2: tuple, b3: tuple, thrust_N: float, mass_kg: float, j: tuple | list, yaw_rate_rad_s: float
 ) -> tuple[float, float, float]:
     """:func:`desired_body_rate` in plain floats (``R_d`` as its columns, jerk ``j`` (3,))."""
     b3j = b3[0] * j[0] + b3[1] * j[1] + b3[2] * j[2]
@@ -267,9 +267,7 @@ class SE3Controller:
         p0, p1, p2 = p
         v0, v1, v2 = v
         w0, w1, w2 = w
-        pd0, pd1, pd2 = setpoint.p_W.tolist()
-        vd0, vd1, vd2 = setpoint.v_W.tolist()
-        ad0, ad1, ad2 = setpoint.a_W.tolist()
+        pd0, pd1, pd2, vd0, vd1, vd2, ad0, ad1, ad2, jd0, jd1, jd2 = setpoint.vector_floats
 
         # 1. Desired force in W, with the integral (clamped: anti-windup) and the tilt limit.
         e_p = (p0 - pd0, p1 - pd1, p2 - pd2)
@@ -289,9 +287,7 @@ class SE3Controller:
 
         # 4. Desired body rate (flatness feed-forward) and the attitude / rate errors.
         thrust_N = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
-        wd0, wd1, wd2 = _desired_body_rate(
-            b1, b2, b3, thrust_N, m, setpoint.j_W.tolist(), setpoint.yaw_rate_rad_s
-        )
+        wd0, wd1, wd2 = _desired_body_rate(b1, b2, b3, thrust_N, m, (jd0, jd1, jd2), setpoint.yaw_rate_rad_s)
         # omega_d_B = R^T (R_d omega_d).
         u0 = b1[0] * wd0 + b2[0] * wd1 + b3[0] * wd2
         u1 = b1[1] * wd0 + b2[1] * wd1 + b3[1] * wd2

@@ -87,6 +87,7 @@ class FlatOutput:
         arrays = checked_arrays("FlatOutput", tuple((n, getattr(self, n), (3,)) for n in names))
         for name, arr in zip(names, arrays, strict=True):
             object.__setattr__(self, name, arr)
+        object.__setattr__(self, "_floats", tuple(x for arr in arrays for x in arr.tolist()))
         for name in ("yaw_rad", "yaw_rate_rad_s"):
             value = float(getattr(self, name))
             if not np.isfinite(value):
@@ -124,7 +125,16 @@ class FlatOutput:
             object.__setattr__(out, name, buf[start : start + 3])
         object.__setattr__(out, "yaw_rad", yaw)
         object.__setattr__(out, "yaw_rate_rad_s", rate)
+        object.__setattr__(out, "_floats", tuple(buf.tolist()))
         return out
+
+    @property
+    def vector_floats(self) -> tuple[float, ...]:
+        """``(*p_W, *v_W, *a_W, *j_W)``: the 12 vector entries as plain floats, kept from the construction.
+
+        The controllers' per-tick read (one attribute instead of four ``tolist`` calls); the arrays' values.
+        """
+        return self._floats
 
 
 @dataclass(frozen=True)

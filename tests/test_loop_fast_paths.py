@@ -143,3 +143,14 @@ def test_waypoints_and_sequence_lookup_equal_searchsorted():
         k = max(0, int(np.searchsorted(seq.start_times_s, t, side="right")) - 1)
         want = seq._items[k].sample(t - seq.start_times_s[k])
         assert _same_bits(seq.sample(t).p_W, want.p_W) and _same_bits(seq.sample(t).j_W, want.j_W)
+
+
+def test_flat_output_vector_floats_are_the_array_values():
+    for fo in (
+        FlatOutput(p_W=[1, 2, 3], v_W=np.array([0.5, -0.0, 2.0]), yaw_rad=0.3),
+        FlatOutput.from_floats([1.0, 2.0, 3.0], [0.5, -0.0, 2.0], [0, 0, 0], [0.0, 1e-300, -4.0], 0.3, 0.0),
+    ):
+        want = np.concatenate([fo.p_W, fo.v_W, fo.a_W, fo.j_W])
+        got = fo.vector_floats
+        assert type(got) is tuple and all(type(x) is float for x in got)
+        assert _same_bits(got, want)

@@ -279,10 +279,9 @@ class VioQuadEnv(gymnasium.Env):
         """
         key = (a.tobytes(), self._target_est.tobytes(), self._yaw0)
         if self._setpoint_cache is None or self._setpoint_cache[0] != key:
-            cfg = self.config
-            setpoint = FlatOutput(
-                p_W=self._target_est + a[:3] * cfg.position_range_m, yaw_rad=self._yaw0 + a[3] * np.pi
-            )
+            p_W = (self._target_est + a[:3] * self.config.position_range_m).tolist()
+            zero = [0.0, 0.0, 0.0]
+            setpoint = FlatOutput.from_floats(p_W, zero, zero, zero, self._yaw0 + a[3] * np.pi, 0.0)
             self._setpoint_cache = (key, setpoint)
         return self._setpoint_cache[1]
 
