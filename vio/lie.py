@@ -115,7 +115,11 @@ def quat_wxyz_to_rotmat_rows(quat_wxyz: np.ndarray) -> list[float]:
     q = np.asarray(quat_wxyz, dtype=float).ravel()
     n = math.sqrt(q.dot(q))
     # A zero (or NaN) norm takes numpy's division, which gives NaN or inf where plain floats would raise.
-    w, x, y, z = (c / n for c in q.tolist()) if n > 0.0 else (q / np.sqrt(q.dot(q))).tolist()
+    if n > 0.0:
+        w, x, y, z = q.tolist()
+        w, x, y, z = w / n, x / n, y / n, z / n
+    else:
+        w, x, y, z = (q / np.sqrt(q.dot(q))).tolist()
     return [
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),

@@ -208,8 +208,7 @@ class ClosedLoopSim:
         ``Simulation.set_pose`` end with, so the same state returns the same record (the env reads the
         truth several times per low-level tick: the ``ground-truth`` estimate, the crash test, ``info``).
         """
-        data = self.sim.data
-        key = (data.time, data.qpos.tobytes(), data.qvel.tobytes())
+        key = self.sim.state_key()
         if key != self._truth_key:
             self._truth_key, self._truth = key, TruthState(float(key[0]), *self.sim.body_state())
         return self._truth

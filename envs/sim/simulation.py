@@ -223,7 +223,7 @@ class Simulation:
         if ctrl is not None:
             d.ctrl[:] = ctrl
         key = self._forward_key
-        if key is not None and key == self._state_key():
+        if key is not None and key == self.state_key():
             # The last step's closing mj_forward computed this state's position and velocity stages (the
             # collision test is most of them): finish the first step with MuJoCo's split step, mj_step2
             # (mj_step = mj_step1 + mj_step2; mj_step1 is those stages and the position/velocity checks).
@@ -235,10 +235,13 @@ class Simulation:
         else:
             mujoco.mj_step(m, d, n_steps)  # the same as n_steps calls, without their overhead
         mujoco.mj_forward(m, d)
-        self._forward_key = self._state_key()
+        self._forward_key = self.state_key()
 
-    def _state_key(self) -> tuple:
-        """What the position and velocity stages read from ``data``: time, ``qpos``, ``qvel`` (and mocap)."""
+    def state_key(self) -> tuple:
+        """What the position and velocity stages read from ``data``: time, ``qpos``, ``qvel`` (and mocap).
+
+        Equal keys mean the same physics state (the readers memoize on it, e.g. the closed loop's truth).
+        """
         d = self.data
         if self._has_mocap:
             return (d.time, d.qpos.tobytes(), d.qvel.tobytes(), d.mocap_pos.tobytes(), d.mocap_quat.tobytes())
