@@ -142,7 +142,7 @@ class Waypoints:
     @property
     def duration_s(self) -> float:
         """Total time of all segments (s)."""
-        return float(self._starts[-1])
+        return self._starts_f[-1]
 
     @property
     def segment_times_s(self) -> np.ndarray:
