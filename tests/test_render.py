@@ -219,6 +219,26 @@ def test_gray_with_reused_buffers_is_the_plain_conversion_and_never_aliased(room
     np.testing.assert_array_equal(images[0], images[2])
 
 
+def test_image_sized_framebuffer_renders_the_same_pixels_as_the_model_sized_one(room):
+    """The renderer's framebuffer is allocated at the image size, not the model's offwidth x offheight."""
+    sim, renderer = room
+    vis = sim.model.vis.global_
+    assert (vis.offwidth, vis.offheight) == (752, 480)  # the model keeps its buffer size
+    full = mujoco.Renderer(sim.model, height=240, width=320)  # the model-sized buffer, MSAA as configured
+    try:
+        for view in ("centre_east", "room_corner", "floor_steep", "crate_close"):
+            p, yaw, pitch = ROOM_VIEWS[view]
+            sim.set_pose(_body_rotation(yaw, pitch), np.array(p))
+            full.update_scene(sim.data, camera=ONBOARD_CAMERA)
+            np.testing.assert_array_equal(renderer.render_rgb(sim.data), full.render())
+            full.enable_depth_rendering()
+            full.update_scene(sim.data, camera=ONBOARD_CAMERA)
+            np.testing.assert_array_equal(renderer.render_depth(sim.data), full.render().astype(np.float64))
+            full.disable_depth_rendering()
+    finally:
+        full.close()
+
+
 def test_renderer_rejects_bad_arguments(room):
     sim, _ = room
     with pytest.raises(ValueError, match="exceeds the model's offscreen buffer"):
