@@ -3,7 +3,8 @@
 The memoized truth (``ClosedLoopSim.truth``, the ``ground-truth`` feed, the crash test), the memoized gust
 decay in plain floats, ``SE3Controller.thrusts`` and ``thrusts_from_estimate`` (no navigation record) and
 the split physics step (``Simulation.step_checked``), the env's target memo, arena test and reward sums in
-floats are patched back, and the IMU model runs although nothing
+floats, the action check, the ``rot6d`` state vector and the error norms on floats and the wind force written
+into the cached ``xfrc_applied`` row are patched back, and the IMU model runs although nothing
 reads it, in the second env of each pair, to the code they replaced (copied below), and both envs are stepped
 with the same seed and the same actions: observations, rewards, terminations and ``info`` must agree bit for
 bit. (The SE(3) controller's float path is not bit-identical to its former numpy form, BLAS sums being fused
