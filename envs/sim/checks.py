@@ -1,4 +1,4 @@
-"""Input checks of the per-tick paths (simulation, sensors, envs) on plain floats."""
+"""Per-tick helpers on plain floats (simulation, sensors, envs): an exact finiteness test, a 3-vector norm."""
 
 from __future__ import annotations
 
