@@ -273,8 +273,8 @@ def ekf_update(state: State, H: np.ndarray, r: np.ndarray, R: np.ndarray | float
     c, info = scipy.linalg.lapack.dpotrf(S, lower=1, clean=0)
     if info != 0:
         raise ValueError(f"ekf_update: innovation covariance is not positive definite (dpotrf info {info})")
-    K_t, info = scipy.linalg.lapack.dpotrs(c, PHt.T, lower=1)  # (m, dim) = S^-1 H P
-    if info != 0:
+    K_t, info = (np.zeros((0, P.shape[0])), 0) if m == 0 else scipy.linalg.lapack.dpotrs(c, PHt.T, lower=1)
+    if info != 0:  # K_t (m, dim) = S^-1 H P
         raise ValueError(f"ekf_update: dpotrs argument {-info} is invalid")
     dx = K_t.T @ r
     state._set_cov(P - PHt @ K_t)
