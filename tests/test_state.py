@@ -112,6 +112,15 @@ def test_ekf_update_matches_textbook_kalman_and_boxplus():
     _assert_sym_psd(st)
     with pytest.raises(ValueError, match="do not match"):
         ekf_update(st, H[:, :5], r, R)
+    # An innovation covariance that is not positive definite is refused before anything changes.
+    P_before = st.cov.copy()
+    with pytest.raises(ValueError, match="not positive definite"):
+        ekf_update(st, H, r, -np.eye(5) * 1e6)
+    np.testing.assert_array_equal(st.cov, P_before)
+    # No rows: no correction, the covariance stays (exactly: it is symmetric already).
+    dx0 = ekf_update(st, np.zeros((0, st.dim)), np.zeros(0), 1.0)
+    np.testing.assert_array_equal(dx0, np.zeros(st.dim))
+    np.testing.assert_array_equal(st.cov, P_before)
 
 
 def test_ekf_propagate_closed_form_and_psd():

@@ -110,7 +110,7 @@ class FeatureDatabase:
         valid = self._slot_t == self._slot_t  # finite slots
         if not len(cols):
             return np.zeros(0, int)
-        counts = self._has[:, valid][:, :, np.maximum(cols, 0)].sum(axis=(0, 1))
+        counts = self._has[:, :, np.maximum(cols, 0)][:, valid].sum(axis=(0, 1))
         return np.where(cols >= 0, counts, 0)
 
     def observations(self, ids: np.ndarray, times: np.ndarray, cam: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -131,11 +131,11 @@ class FeatureDatabase:
 
     def remove_features(self, ids: np.ndarray) -> None:
         """Delete every observation of ``ids``."""
-        for fid in np.asarray(ids).tolist():
-            col = self._id_to_col.pop(int(fid), None)
-            if col is not None:
-                self._has[:, :, col] = False
-                self._col_id[col] = -1
+        pop = self._id_to_col.pop
+        cols = [c for c in (pop(int(fid), None) for fid in np.asarray(ids).ravel().tolist()) if c is not None]
+        if cols:  # one scatter for all of them
+            self._has[:, :, cols] = False
+            self._col_id[cols] = -1
 
     def remove_frame(self, t_s: float) -> None:
         """Delete the frame at ``t_s`` and every feature left without observations."""

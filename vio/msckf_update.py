@@ -83,6 +83,7 @@ def _stacked_jacobian(
     st: State,
     calib_right: CameraCalibration | None,
     p_f: np.ndarray,
+    extrinsic: bool = True,
 ) -> FeatureJacobian:
     """Predictions and Jacobians of all views (cam0's K, then cam1's K), leading shape (F, C K).
 
@@ -92,18 +93,22 @@ def _stacked_jacobian(
         st: The state (cam0 extrinsic ``st.R_BC``, ``st.p_BC``).
         calib_right: Cam1 calibration, or None for a mono rig.
         p_f: Feature positions (m) in W, shape (F, 3).
+        extrinsic: Also the extrinsic Jacobian (False: ``H_extrinsic`` None, the extrinsic is not estimated).
     """
-    jac0 = feature_jacobian(R_WB[None], p_WB[None], st.R_BC, st.p_BC, p_f[:, None, :])
+    jac0 = feature_jacobian(R_WB[None], p_WB[None], st.R_BC, st.p_BC, p_f[:, None, :], extrinsic)
     if calib_right is None:
         return jac0
     R_BC1 = np.asarray(calib_right.R_BC, dtype=float)
     p_BC1 = np.asarray(calib_right.p_BC, dtype=float)
-    jac1 = feature_jacobian(R_WB[None], p_WB[None], R_BC1, p_BC1, p_f[:, None, :])
+    jac1 = feature_jacobian(R_WB[None], p_WB[None], R_BC1, p_BC1, p_f[:, None, :], False)
+    H_ext = None
+    if extrinsic:
+        H_ext = np.concatenate([jac0.H_extrinsic, np.zeros_like(jac0.H_extrinsic)], axis=1)
     return FeatureJacobian(
         np.concatenate([jac0.z_norm, jac1.z_norm], axis=1),
         np.concatenate([jac0.depth_m, jac1.depth_m], axis=1),
         np.concatenate([jac0.H_pose, jac1.H_pose], axis=1),
-        np.concatenate([jac0.H_extrinsic, np.zeros_like(jac1.H_extrinsic)], axis=1),
+        H_ext,
         np.concatenate([jac0.H_feature, jac1.H_feature], axis=1),
     )
 
@@ -172,12 +177,14 @@ def feature_system(
     stereo = calib_right is not None
     F, V = mask.shape
     right = calib_right
+    has_ext = st.has_block(EXTRINSIC_BLOCK)
     # 3. Residuals at the current estimates; Jacobians where ``update_linearization`` says.
-    cur = _stacked_jacobian(R_WB, p_WB, st, right, p_f)
-    if p.use_fej and p.update_linearization == "first_estimates":
+    fej = p.use_fej and p.update_linearization == "first_estimates"
+    cur = _stacked_jacobian(R_WB, p_WB, st, right, p_f, has_ext and not fej)
+    if fej:
         R_fej = np.stack([c.R_WB_fej for c in clones])
         p_fej = np.stack([c.p_WB_fej for c in clones])
-        jac = _stacked_jacobian(R_fej, p_fej, st, right, p_f)
+        jac = _stacked_jacobian(R_fej, p_fej, st, right, p_f, has_ext)
     else:
         jac = cur
     w = mask[..., None].astype(float)
@@ -189,7 +196,6 @@ def feature_system(
     # of the error state (clone k at 6 k, then the extrinsic), the others are exactly zero.
     clone_offsets = np.array([st.clone_block(float(t)).offset for t in st.clones])
     cols = (clone_offsets[:, None] + np.arange(6)).ravel()
-    has_ext = st.has_block(EXTRINSIC_BLOCK)
     if has_ext:
         cols = np.concatenate([cols, st.block(EXTRINSIC_BLOCK).offset + np.arange(6)])
     n_c = len(cols)

@@ -207,13 +207,13 @@ class State:
             self.p_BC = self.p_BC + dx[o + 3 : o + 6]
         if TIME_OFFSET_BLOCK in self._blocks:
             self.time_offset_s += float(dx[self._blocks[TIME_OFFSET_BLOCK].offset])
-        if self.clones:  # all clones at once: one stacked Rodrigues
+        if self.clones:  # all clones at once: one stacked Rodrigues, one stacked product (the same 3x3 GEMMs)
             clones = list(self.clones.items())
             o = np.array([self._blocks[self.clone_name(t)].offset for t, _ in clones])[:, None] + np.arange(3)
-            dR = exp_so3_batch(dx[o])
+            R_new = np.stack([c.R_WB for _, c in clones]) @ exp_so3_batch(dx[o])
+            p_new = np.stack([c.p_WB for _, c in clones]) + dx[o + 3]
             for k, (_, clone) in enumerate(clones):
-                clone.R_WB = clone.R_WB @ dR[k]
-                clone.p_WB = clone.p_WB + dx[o[k] + 3]
+                clone.R_WB, clone.p_WB = R_new[k], p_new[k]
         for fid, lm in self.landmarks.items():
             o = self._blocks[self.landmark_name(fid)].offset
             lm.p_W = lm.p_W + dx[o : o + 3]
@@ -269,11 +269,13 @@ def ekf_update(state: State, H: np.ndarray, r: np.ndarray, R: np.ndarray | float
         S[np.diag_indices(m)] += float(R)
     else:
         S += R
-    try:
-        c = scipy.linalg.cho_factor(S, lower=True, check_finite=False)
-    except np.linalg.LinAlgError as exc:
-        raise ValueError(f"ekf_update: innovation covariance is not positive definite ({exc})") from None
-    K_t = scipy.linalg.cho_solve(c, PHt.T, check_finite=False)  # (m, dim) = S^-1 H P
+    # LAPACK's Cholesky directly: what scipy.linalg.cho_factor / cho_solve call, without their wrappers.
+    c, info = scipy.linalg.lapack.dpotrf(S, lower=1, clean=0)
+    if info != 0:
+        raise ValueError(f"ekf_update: innovation covariance is not positive definite (dpotrf info {info})")
+    K_t, info = (np.zeros((0, P.shape[0])), 0) if m == 0 else scipy.linalg.lapack.dpotrs(c, PHt.T, lower=1)
+    if info != 0:  # K_t (m, dim) = S^-1 H P
+        raise ValueError(f"ekf_update: dpotrs argument {-info} is invalid")
     dx = K_t.T @ r
     state._set_cov(P - PHt @ K_t)
     state._boxplus(dx)
@@ -399,8 +401,10 @@ def is_psd(state: State, tol: float = 1e-12) -> bool:
     P = state._cov
     if not np.all(np.isfinite(P)):
         return False
+    P_tol = P.copy()
+    P_tol[np.diag_indices_from(P_tol)] += tol  # P + tol I (the off-diagonal zeros added nothing)
     try:
-        np.linalg.cholesky(P + tol * np.eye(P.shape[0]))
+        np.linalg.cholesky(P_tol)
     except np.linalg.LinAlgError:
         return False
     return True

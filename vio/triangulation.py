@@ -145,26 +145,26 @@ def triangulate(
 
     h, e, cost = cost_of(x)
     lam = np.full(F, p.initial_damping)
-    tiny_eye = 1e-12 * np.eye(3)
+    eye3 = np.eye(3)
+    tiny_eye = 1e-12 * eye3
+    dh_xy, dh_z = dh_dx[..., :2, :], dh_dx[..., 2:3, :]
     for _ in range(p.max_iterations):
-        inv_z = w / np.where(np.abs(h[..., 2]) < 1e-12, 1e-12, h[..., 2])  # w = 0 or 1: masked rows 0
-        zx, zy = h[..., 0] * inv_z, h[..., 1] * inv_z
-        J = np.empty((F, K, 2, 3))
-        J[..., 0, :] = dh_dx[..., 0, :] * inv_z[..., None] - dh_dx[..., 2, :] * (zx * inv_z)[..., None]
-        J[..., 1, :] = dh_dx[..., 1, :] * inv_z[..., None] - dh_dx[..., 2, :] * (zy * inv_z)[..., None]
-        J = J.reshape(F, 2 * K, 3)
+        inv_z = (w / np.where(np.abs(h[..., 2]) < 1e-12, 1e-12, h[..., 2]))[..., None]  # masked rows 0
+        # Rows x and y at once: J_a = dh_a / h_z - dh_z (z_a / h_z), the same products as row by row.
+        J = (dh_xy * inv_z[..., None] - dh_z * (h[..., :2] * inv_z * inv_z)[..., None]).reshape(F, 2 * K, 3)
         JtJ = np.swapaxes(J, 1, 2) @ J
         Jte = np.einsum("fma,fm->fa", J, e.reshape(F, 2 * K))
         diag = np.diagonal(JtJ, axis1=1, axis2=2)[:, None, :]
-        damp = JtJ + lam[:, None, None] * (np.eye(3) * diag + tiny_eye)
+        damp = JtJ + lam[:, None, None] * (eye3 * diag + tiny_eye)
         dx = -np.linalg.solve(damp, Jte[..., None])[..., 0]
         x_new = x + dx
         h_new, e_new, cost_new = cost_of(x_new)
         better = (cost_new < cost) & np.all(np.isfinite(x_new), axis=1)
-        x = np.where(better[:, None], x_new, x)
-        h = np.where(better[:, None, None], h_new, h)
-        e = np.where(better[:, None, None], e_new, e)
-        cost = np.where(better, cost_new, cost)
+        if better.all():
+            x, h, e, cost = x_new, h_new, e_new, cost_new
+        elif better.any():
+            x[better], h[better] = x_new[better], h_new[better]
+            e[better], cost[better] = e_new[better], cost_new[better]
         lam = np.where(better, lam * 0.1, lam * 10.0)
         if np.all(np.linalg.norm(dx, axis=1) <= p.step_tolerance * np.linalg.norm(x, axis=1)):
             break

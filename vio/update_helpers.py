@@ -34,19 +34,25 @@ class FeatureJacobian:
         z_norm: Predicted undistorted normalized coordinates, shape S + (2,).
         depth_m: Depth ``p_C[2]`` (m), shape S.
         H_pose: Jacobian w.r.t. the clone error ``[dtheta, dp]``, shape S + (2, 6).
-        H_extrinsic: Jacobian w.r.t. the extrinsic error ``[dphi_BC, dp_BC]``, shape S + (2, 6).
+        H_extrinsic: Jacobian w.r.t. the extrinsic error ``[dphi_BC, dp_BC]``, shape S + (2, 6), or None
+            when not asked for.
         H_feature: Jacobian w.r.t. ``p_f_W``, shape S + (2, 3).
     """
 
     z_norm: np.ndarray
     depth_m: np.ndarray
     H_pose: np.ndarray
-    H_extrinsic: np.ndarray
+    H_extrinsic: np.ndarray | None
     H_feature: np.ndarray
 
 
 def feature_jacobian(
-    R_WB: np.ndarray, p_WB: np.ndarray, R_BC: np.ndarray, p_BC: np.ndarray, p_f_W: np.ndarray
+    R_WB: np.ndarray,
+    p_WB: np.ndarray,
+    R_BC: np.ndarray,
+    p_BC: np.ndarray,
+    p_f_W: np.ndarray,
+    extrinsic: bool = True,
 ) -> FeatureJacobian:
     """Measurement prediction and Jacobians (open_vins ``get_feature_jacobian_full``, global-3D feature).
 
@@ -58,6 +64,7 @@ def feature_jacobian(
         R_BC: Camera-to-body rotation, shape (..., 3, 3).
         p_BC: Camera origin in B (m), shape (..., 3).
         p_f_W: Feature positions (m) in W, shape (..., 3).
+        extrinsic: Also the extrinsic Jacobian (False: ``H_extrinsic`` is None, for a fixed extrinsic).
 
     Returns:
         The predictions and Jacobians.
@@ -78,7 +85,9 @@ def feature_jacobian(
     dz_dpb = dz_dpc @ R_CB
     H_f = dz_dpb @ R_BW
     H_pose = np.concatenate([dz_dpb @ skew_batch(p_B), -H_f], axis=-1)
-    H_ext = np.concatenate([dz_dpc @ skew_batch(p_C), -np.broadcast_to(dz_dpb, dz_dpc.shape)], axis=-1)
+    H_ext = None
+    if extrinsic:
+        H_ext = np.concatenate([dz_dpc @ skew_batch(p_C), -np.broadcast_to(dz_dpb, dz_dpc.shape)], axis=-1)
     return FeatureJacobian(z, Z, H_pose, H_ext, H_f)
 
 
