@@ -156,10 +156,10 @@ class KltParams:
             is accepted within ``fb_unchecked_shift_px`` of it is not tracked back (the anchoring's tests,
             ZNCC against the track's first template, shift and stretch, stand in for the check); the
             others are (no template yet, refused, or moved further by the anchoring). It saves most of a
-            KLT pass (stereo look-around, front end 15-16 -> 13 ms CPU per frame with the two options
-            below; mono ``figure8`` 11.7 -> 8.9 ms), but the look-around's world lock did not hold:
-            4.96 / 3.82 / 2.40 mm on seeds 0 / 1 / 2 became 4.53 / 4.85 / 4.26 mm (max 7.8 / 8.5 / 9.2
-            mm, NEES 3.3 / 5.1 / 3.3; README "MSCKF per frame"), so it is off.
+            KLT pass (stereo look-around, front end 14.3 -> 11.3 ms CPU per frame with the two options
+            below, 12.9 without this one; mono ``figure8`` 11.7 -> 8.9 ms), but the look-around's world
+            lock did not hold: 4.96 / 3.82 / 2.40 mm on seeds 0 / 1 / 2 became 4.53 / 4.85 / 4.26 mm (max
+            7.8 / 8.5 / 9.2 mm, NEES 3.3 / 5.1 / 3.3; README "MSCKF per frame"), so it is off.
         fb_unchecked_shift_px: See ``fb_check_anchored``. On the stereo look-around (cam0, 20 s, seed 0)
             87 % of the anchored tracks stay within 0.25 px. Tracking none of the anchored tracks back
             (``inf``) let a few gross errors through (track error against the truth, RMS over 106k

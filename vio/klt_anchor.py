@@ -116,7 +116,8 @@ class TemplateAnchors:
             sigma 0.038 px at 1e-3, 0.034 at 1).
         zncc_at_final_warp: Test the ZNCC of the patch sampled at the final warp (one more remap of all
             patches); False: the ZNCC of the last iteration's samples, at the warp before its step (after
-            the first iteration that step is a small fraction of a pixel).
+            the first iteration that step is a small fraction of a pixel): the same warps, a remap less
+            (``KltParams.anchor_zncc_at_final_warp``, off by default: README "MSCKF per frame").
     """
 
     def __init__(
