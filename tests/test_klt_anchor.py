@@ -210,3 +210,56 @@ def test_a_failed_anchoring_ends_the_track_unless_told_otherwise():
     # Ended: no id lives past the frame after its start; the positions go on under new ids.
     assert not seen[True][0] & seen[True][2]
     assert len(seen[True][2]) > 0.8 * len(seen[False][2])
+
+
+def test_zncc_of_the_last_samples_accepts_as_the_final_warp_and_moves_nothing():
+    """``zncc_at_final_warp=False`` tests the last iteration's samples: the same warps, the same verdicts.
+
+    A sub-pixel shift with a small affine change (the step of the last iteration is tiny): every track
+    lands where the extra final remap would have it, and the refusals of a foreign texture stay refusals.
+    """
+    rng = np.random.default_rng(11)
+    image0 = _texture(12).astype(np.float32)
+    M = np.float32([[1.03, 0.01, 0.7], [-0.01, 0.98, -0.45]])
+    image1 = cv2.warpAffine(image0, M, (320, 240), flags=cv2.INTER_CUBIC)
+    uv0 = rng.uniform(30.0, 200.0, (80, 2)) * [1.3, 1.0]
+    start = uv0 @ M[:, :2].T + M[:, 2] + rng.uniform(-0.7, 0.7, uv0.shape)
+    ids = np.arange(len(uv0))
+    out = {}
+    for final in (True, False):
+        anchors = TemplateAnchors(affine_after_px=0.0, zncc_at_final_warp=final)
+        anchors.take(image0, ids, uv0)
+        out[final] = anchors.refine(image1, ids, start)
+        refused, flags = anchors.refine(_texture(13).astype(np.float32), ids, start)
+        assert not flags.any()
+        np.testing.assert_array_equal(refused, start)
+    assert out[True][1].mean() > 0.95
+    np.testing.assert_array_equal(out[True][1], out[False][1])
+    np.testing.assert_array_equal(out[True][0], out[False][0])
+
+
+def test_anchored_tracks_skip_the_backward_pass_and_keep_the_checked_positions():
+    """``fb_check_anchored=False``: the anchoring's ZNCC test replaces the forward-backward check.
+
+    On a clean shift both settings keep the same tracks at the same positions (the anchoring refines the
+    same forward result); on a frame of another texture the anchoring (then the backward pass of the
+    refused tracks, and RANSAC) still drops over 90 % of the tracks.
+    """
+    camera = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    base = _texture(14, (300, 400))
+    frames = []
+    for k in range(6):
+        M = np.float32([[1.0, 0.0, -40.0 - 1.7 * k], [0.0, 1.0, -30.0 + 0.9 * k]])
+        frames.append(cv2.warpAffine(base, M, (320, 240), flags=cv2.INTER_CUBIC).astype(np.uint8))
+    frames.append(np.clip(_texture(15), 0, 255).astype(np.uint8))
+    runs = {}
+    for checked in (True, False):
+        trk = KltTracker(camera, KltParams(fb_check_anchored=checked))
+        runs[checked] = [
+            trk.process(CameraFrame(t_s=0.05 * k, image=im), 0.05 * k) for k, im in enumerate(frames)
+        ]
+    for a, b in zip(runs[True][:-1], runs[False][:-1], strict=True):
+        np.testing.assert_array_equal(a.ids, b.ids)
+        np.testing.assert_allclose(a.uv_px, b.uv_px, atol=1e-4)
+    first, last = runs[False][-2], runs[False][-1]
+    assert np.isin(last.ids, first.ids).mean() < 0.1

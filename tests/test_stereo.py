@@ -181,6 +181,34 @@ def test_tracked_points_match_on_the_finest_level_as_on_the_full_pyramid(room):
     np.testing.assert_array_equal(fine.uv1_px[~first.mask], full.uv1_px[~first.mask])
 
 
+def test_tracked_points_tracked_back_only_off_their_prediction_match_as_all_tracked_back(room):
+    """``tracked_check_beyond_px``: a tracked point whose match lands near its prediction is not tracked back.
+
+    The forward pass is the same, so every match is the same pixel, and skipping a test can only add
+    matches. With a good prior (5 % off) it adds none here. With a prior 3x off, the backward pass refuses
+    some matches that land within 1 px of the wrong prediction: a few per cent of the points are then
+    accepted that the full check refuses (a prior that wrong does not come from the previous frame).
+    """
+    sim, renderer, (c0, c1) = room
+    pos, yaw, pitch = VIEWS["crate"]
+    sim.set_pose(Rotation.from_euler("ZY", [yaw, pitch], degrees=True).as_matrix(), np.array(pos))
+    left, right = renderer.render_gray(sim.data), _gray(renderer, sim.data, HEADSET_CAMERAS[1])
+    uv0 = cv2.goodFeaturesToTrack(left, 300, 0.01, 8, blockSize=5).reshape(-1, 2).astype(float)
+    first = match_stereo(left, right, uv0, c0, c1)
+    for scale, most_extra in ((1.05, 0), (3.0, 0.05 * len(uv0))):
+        prior = np.where(first.mask, first.depth_m * scale, np.nan)
+        out = {
+            beyond: match_stereo(
+                left, right, uv0, c0, c1, StereoMatchParams(tracked_check_beyond_px=beyond), prior
+            )
+            for beyond in (-1.0, 1.0)
+        }
+        np.testing.assert_array_equal(out[-1.0].uv1_px, out[1.0].uv1_px)
+        assert np.all(out[1.0].mask >= out[-1.0].mask)
+        assert (out[1.0].mask & ~out[-1.0].mask).sum() <= most_extra
+    assert out[-1.0].mask.sum() > 0.7 * len(uv0)
+
+
 def _marker_scene():
     """The headset in the textured room plus a small self-lit red sphere (``marker``) in the world."""
     include = {

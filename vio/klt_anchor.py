@@ -114,6 +114,10 @@ class TemplateAnchors:
             diagonal): each step moves ``g`` by about half its Gauss-Newton step, so that ``g``, which the
             small patch holds weakly, follows the view over a few frames (``circle`` seed 0: robust white
             sigma 0.038 px at 1e-3, 0.034 at 1).
+        zncc_at_final_warp: Test the ZNCC of the patch sampled at the final warp (one more remap of all
+            patches); False: the ZNCC of the last iteration's samples, at the warp before its step (after
+            the first iteration that step is a small fraction of a pixel): the same warps, a remap less
+            (``KltParams.anchor_zncc_at_final_warp``, off by default: README "MSCKF per frame").
     """
 
     def __init__(
@@ -129,6 +133,7 @@ class TemplateAnchors:
         converged_px: float = 0.0,
         projective_after_px: float = float("inf"),
         projective_damping: float = 1.0,
+        zncc_at_final_warp: bool = True,
     ) -> None:
         """Create an empty template store."""
         r = np.arange(-half_size_px, half_size_px + 1, dtype=float)
@@ -151,6 +156,7 @@ class TemplateAnchors:
         self.converged_px = converged_px
         self.projective_after_px = projective_after_px
         self.projective_damping = projective_damping
+        self.zncc_at_final_warp = zncc_at_final_warp
         self._projective = bool(np.isfinite(projective_after_px))
         n_px = self._dx.size
         # Slot storage: a track's template lives in one row until its track ends (no copies per frame).
@@ -340,7 +346,7 @@ class TemplateAnchors:
         g: np.ndarray | None,
         rows: np.ndarray,
         mode: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
         """Inverse-compositional Gauss-Newton of the templates in ``rows`` from the warps ``(c, A, g)``.
 
         Steps (Baker & Matthews 2004, sec. 3.2, eq. 35), on the tracks still iterating:
@@ -362,11 +368,13 @@ class TemplateAnchors:
             mode: The fit of each track (N,): 0 translation, 1 affine, 2 homography (only with ``g``).
 
         Returns:
-            ``(c (N, 2), A (N, 2, 2), g (N, 2) or None, ok (N,) bool)``: the final warps, and which stayed
-            inside the image.
+            ``(c (N, 2), A (N, 2, 2), g (N, 2) or None, ok (N,) bool, zncc (N,) or None)``: the final
+            warps, which stayed inside the image, and (``zncc_at_final_warp`` False) the ZNCC of each
+            track's last samples against its template (NaN where it never iterated).
         """
         c, A = c.copy(), A.copy()
         g = None if g is None else g.copy()
+        zncc = None if self.zncc_at_final_warp else np.full(len(c), np.nan)
         ok = self._inside_warped(img, c, A, g)
         idx = np.flatnonzero(ok)  # the tracks still iterating, with their warps (c_i, A_i, g_i)
         # Each track's solve matrices, one gather (a smaller fit's are zero in the rows it does not have,
@@ -382,6 +390,9 @@ class TemplateAnchors:
             w = self._sample(img, c_i, A_i, g_i)
             w -= w.mean(axis=1, keepdims=True)
             rms = np.sqrt(np.einsum("np,np->n", w, w) / w.shape[1])
+            if zncc is not None:  # the normalized patch against the (normalized) template
+                dot = np.einsum("np,np->n", w, self._tmpl[rows[idx]])
+                zncc[idx] = dot / (w.shape[1] * np.maximum(rms, 1e-9))
             dp = np.matmul(J, w[:, :, None])[:, :, 0] / np.maximum(rms, 1e-9)[:, None] - J_tmpl
             # 3. The inverse compositional update.
             A_new = A_i @ _inv_2x2(np.eye(2) + dp[:, [0, 2, 1, 3]].reshape(-1, 2, 2))
@@ -407,7 +418,7 @@ class TemplateAnchors:
         c[idx], A[idx] = c_i, A_i
         if g is not None:
             g[idx] = g_i
-        return c, A, g, ok
+        return c, A, g, ok, zncc
 
     def refine(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Align the templates of ``ids`` into ``image``, starting from the frame-to-frame pixels ``uv_px``.
@@ -439,13 +450,16 @@ class TemplateAnchors:
             # A track aligned as a homography once stays one (its warp keeps its projective row).
             mode[(moved >= self.projective_after_px) | np.any(self._g[rows] != 0.0, axis=1)] = 2
             g = self._g[rows] if np.any(mode == 2) else None
-        c, A, g, ok = self._align(img, start, self._A[rows], g, rows, mode)
+        c, A, g, ok, zncc_last = self._align(img, start, self._A[rows], g, rows, mode)
         # Acceptance: the aligned patch still matches, did not slide far, and is not stretched too much.
         idx = np.flatnonzero(ok)
         if len(idx) == 0:
             return uv, anchored
-        warped, _ = _normalize(self._sample(img, c[idx], A[idx], None if g is None else g[idx]))
-        zncc = np.mean(warped * self._tmpl[rows[idx]], axis=1)
+        if zncc_last is None:
+            warped, _ = _normalize(self._sample(img, c[idx], A[idx], None if g is None else g[idx]))
+            zncc = np.mean(warped * self._tmpl[rows[idx]], axis=1)
+        else:
+            zncc = zncc_last[idx]
         sv = singular_values_2x2(A[idx])
         ok[idx] = (zncc >= self.min_zncc) & (np.linalg.norm(c[idx] - start[idx], axis=1) <= self.max_shift_px)
         ok[idx] &= (sv[:, 0] <= self.max_stretch) & (sv[:, 1] >= 1.0 / self.max_stretch)
