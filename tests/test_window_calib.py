@@ -60,19 +60,19 @@ def _weights(cal: CalibValues) -> FactorWeights:
 
 def test_calibration_jacobian_matches_central_differences():
     """D r / d [dtheta_c, dp_c, td] of ``r = h(R_BC Exp(dtheta), p_BC + dp) - (xy - td V)``, cam0 and cam1."""
-    xs, pts, (kf_i, lm_i, xy), cal, _ = _problem()
+    xs, pts, (kf_i, lm_i, xy), cal, gyro = _problem()
     R = np.stack([xs[k].R_WB for k in kf_i])
     p = np.stack([xs[k].p_WB for k in kf_i])
-    vel = np.random.default_rng(1).normal(size=(len(kf_i), 2))
+    motion = (gyro[kf_i], np.stack([xs[k].v_WB for k in kf_i]))
     for cam in (0, 1):
         layout = CalibLayout(2, True, True)
         c0 = CalibValues((cal.R_BC[0],) * 2, (cal.p_BC[0],) * 2, 0.004)
         c0 = c0.retract(layout, 0.01 * np.arange(13))  # the two cameras apart
+        J, vel = calib_jacobian(R, p, pts[lm_i], c0.R_BC[cam], c0.p_BC[cam], *motion, cam, layout)
 
-        def res(c: CalibValues, cam: int = cam) -> np.ndarray:
+        def res(c: CalibValues, cam: int = cam, vel: np.ndarray = vel) -> np.ndarray:  # V held
             return project(R, p, pts[lm_i], c.R_BC[cam], c.p_BC[cam]) - (xy - c.td_s * vel)
 
-        J = calib_jacobian(R, p, pts[lm_i], c0.R_BC[cam], c0.p_BC[cam], vel, cam, layout)
         eps = 1e-6
         cols = []
         for k in range(layout.dim):
@@ -85,7 +85,10 @@ def test_calibration_jacobian_matches_central_differences():
 
 
 def test_image_velocity_is_the_projection_rate_of_the_moving_keyframe():
-    """``V = J_pose [omega_B; v_W]`` against central differences of the projection along the motion."""
+    """``V``, as ``J_pose [omega_B; v_W]`` and in calib_jacobian's closed form, against central differences.
+
+    Of the projection while the keyframe turns at ``omega_B`` (right perturbation) and moves at ``v_W``.
+    """
     xs, pts, (kf_i, lm_i, _), cal, gyro = _problem()
     R = np.stack([xs[k].R_WB for k in kf_i])
     p = np.stack([xs[k].p_WB for k in kf_i])
@@ -99,6 +102,9 @@ def test_image_velocity_is_the_projection_rate_of_the_moving_keyframe():
 
     numeric = (z(dt) - z(-dt)) / (2 * dt)
     np.testing.assert_allclose(image_velocity(J_pose, omega, v), numeric, rtol=1e-6, atol=1e-8)
+    layout = CalibLayout(1, False, True)
+    _, vel = calib_jacobian(R, p, pts[lm_i], cal.R_BC[0], cal.p_BC[0], omega, v, 0, layout)
+    np.testing.assert_allclose(vel, numeric, rtol=1e-6, atol=1e-8)
 
 
 def _calib_factors(xs, obs, cal, gyro, layout, prior=None, prior_cal=None):

@@ -114,14 +114,16 @@ def calib_jacobian(
     p_W: np.ndarray,
     R_BC: np.ndarray,
     p_BC: np.ndarray,
-    vel: np.ndarray,
+    omega_B_rad_s: np.ndarray,
+    v_W_m_s: np.ndarray,
     cam: int,
     layout: CalibLayout,
-) -> np.ndarray:
-    """Jacobian of the normalized reprojection residual w.r.t. the estimated calibration, (M, 2, C).
+) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobian of the normalized reprojection residual w.r.t. the estimated calibration, and ``V``.
 
-    ``p_C = R_BC^T (R_WB^T (p_W - p_WB) - p_BC)``: ``d p_C / d dtheta_c = [p_C]x`` (``R_BC Exp(dtheta)``),
-    ``d p_C / d dp_c = -R_BC^T``; ``d r / d td = V`` (module docstring).
+    ``p_C = R_BC^T (q - p_BC)``, ``q = R_WB^T (p_W - p_WB)``: ``d p_C / d dtheta_c = [p_C]x``
+    (``R_BC Exp(dtheta)``), ``d p_C / d dp_c = -R_BC^T``; ``d r / d td = V`` (module docstring), with
+    ``dq/dt = q x omega_B - R_WB^T v_W`` (:func:`image_velocity` in closed form, without ``J_pose``).
 
     Args:
         R_WB: Keyframe orientations, shape (M, 3, 3).
@@ -129,9 +131,13 @@ def calib_jacobian(
         p_W: Landmarks in W (m), shape (M, 3).
         R_BC: This camera's rotation, shape (3, 3).
         p_BC: Its origin in B (m), shape (3,).
-        vel: Feature image velocities (normalized coordinates per s), shape (M, 2).
+        omega_B_rad_s: Angular rate of each observation's keyframe (gyro less bias), shape (M, 3).
+        v_W_m_s: Its velocity, shape (M, 3).
         cam: Camera index (its columns in the full vector).
         layout: The estimated entries.
+
+    Returns:
+        ``(J (M, 2, C), V (M, 2) normalized coordinates per s)``.
     """
     q = np.einsum("mji,mj->mi", R_WB, p_W - p_WB)
     p_C = (q - p_BC) @ R_BC
@@ -143,11 +149,14 @@ def calib_jacobian(
     sk = np.zeros((len(q), 3, 3))
     sk[:, 0, 1], sk[:, 0, 2], sk[:, 1, 2] = -p_C[:, 2], p_C[:, 1], -p_C[:, 0]
     sk[:, 1, 0], sk[:, 2, 0], sk[:, 2, 1] = p_C[:, 2], -p_C[:, 1], p_C[:, 0]
+    A = dz @ R_BC.T  # d z / d q
+    dq_dt = np.cross(q, omega_B_rad_s) - np.einsum("mji,mj->mi", R_WB, v_W_m_s)
+    vel = np.einsum("mij,mj->mi", A, dq_dt)
     J = np.zeros((len(q), 2, layout.full_dim))
     J[:, :, 6 * cam : 6 * cam + 3] = dz @ sk
-    J[:, :, 6 * cam + 3 : 6 * cam + 6] = -dz @ R_BC.T
+    J[:, :, 6 * cam + 3 : 6 * cam + 6] = -A
     J[:, :, -1] = vel
-    return J[:, :, layout.active]
+    return J[:, :, layout.active], vel
 
 
 def image_velocity(J_pose: np.ndarray, omega_B_rad_s: np.ndarray, v_W_m_s: np.ndarray) -> np.ndarray:

@@ -51,12 +51,18 @@ class OnlineCalibration:
         """An online calibration when ``params`` asks for one, else None.
 
         Raises:
-            ValueError: With ``params.track_noise`` (the correlated-noise factors take no more variables).
+            ValueError: With ``params.track_noise`` (the correlated-noise factors take no more variables), or
+                a ``calibration_start_keyframes`` the window never holds (over ``window_size``).
         """
         if not (params.estimate_extrinsics or params.estimate_time_offset):
             return None
         if params.track_noise:
             raise ValueError("WindowParams: online calibration needs track_noise=False (white track noise)")
+        if not 1 <= params.calibration_start_keyframes <= params.window_size:
+            raise ValueError(
+                f"WindowParams.calibration_start_keyframes must be in 1..window_size ({params.window_size}), "
+                f"got {params.calibration_start_keyframes}"
+            )
         return cls(params, calib, calib_right)
 
     def start_prior(self, prior: LinearPrior) -> LinearPrior:

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from viotb.vio.marginalization import LinearPrior
-from viotb.vio.window_calib import CalibLayout, CalibValues, calib_jacobian, image_velocity
-from viotb.vio.window_factors import NX, reprojection
+from viotb.vio.window_calib import CalibLayout, CalibValues, calib_jacobian
+from viotb.vio.window_factors import NX
 from viotb.vio.window_reprojection import add_reprojection
 
 
@@ -121,23 +121,21 @@ class CalibTerms:
                 continue
             R_BC, p_BC = calib.R_BC[c], calib.p_BC[c]
             R_k, p_k = poses[0][kf_i], poses[1][kf_i]
-            _, _, J_pose, _ = reprojection(R_k, p_k, pts[lm_i], R_BC, p_BC)
-            omega_B = cal_f.gyro_B_rad_s[kf_i] - rest[kf_i, 6:9]
-            vel = image_velocity(J_pose, omega_B, rest[kf_i, 3:6])
-            J_c = calib_jacobian(R_k, p_k, pts[lm_i], R_BC, p_BC, vel, c, cal_f.layout)
+            motion = (cal_f.gyro_B_rad_s[kf_i] - rest[kf_i, 6:9], rest[kf_i, 3:6])  # omega_B, v_W
+            J_c, vel = calib_jacobian(R_k, p_k, pts[lm_i], R_BC, p_BC, *motion, c, cal_f.layout)
             obs_td = (kf_i, lm_i, xy - calib.td_s * vel)
             ci, ni = add_reprojection(
                 *arrays, poses, pts, obs_td, (R_BC, p_BC, sigma, k_h), sums, blocks, J_extra=J_c
             )
             cost, n_res = cost + ci, n_res + ni
-            A = blocks[-1].A
-            sl = slice(9, 9 + C)
-            H_pc = np.zeros((len(arrays[0]) // NX, 6, C))
-            np.add.at(H_pc, kf_i, A[:, :6, sl])
+            A, M, sl = blocks[-1].A, len(kf_i), slice(9, 9 + C)
+            sum_k, sum_l = sums  # the solve's 0/1 matrices summing per keyframe and per landmark
+            H_pc = (sum_k @ A[:, :6, sl].reshape(M, 6 * C)).reshape(-1, 6, C)
             self.H_xc.reshape(-1, NX, C)[:, :6] += H_pc
-            self.H_cc += np.sum(A[:, sl, sl], axis=0)
-            self.g_c += np.sum(A[:, sl, -1], axis=0)
-            np.add.at(self.E_c, lm_i, A[:, sl, 6:9])
+            self.E_c += (sum_l @ A[:, sl, 6:9].reshape(M, 3 * C)).reshape(-1, C, 3)
+            both = np.sum(A[:, sl, :], axis=0)
+            self.H_cc += both[:, sl]
+            self.g_c += both[:, -1]
         return cost, n_res
 
     def assemble(
