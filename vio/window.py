@@ -18,7 +18,8 @@ State: a window of keyframes ``x_k = [R_WB, p_WB, v_WB, b_g, b_a]`` and landmark
    (:mod:`viotb.vio.window_solver`, factors batched in :mod:`viotb.vio.window_batch`; a solve unconverged
    after ``keyframe_frame_iterations`` steps takes the rest of its budget on the next frame). Before that, the
    IMU-predicted keyframe's observations of existing landmarks give the NIS per dof of its health record
-   (:mod:`viotb.vio.window_nis`; the monitor's time-sync test reads it).
+   (:mod:`viotb.vio.window_nis`; the monitor's time-sync test reads it). Online calibration (off by default):
+   the extrinsics and time offset join the variables (:mod:`viotb.vio.window_calib`; health ``calibration``).
 4. When the window is full, marginalize the oldest keyframe together with every landmark it observed
    (with all their observations) into a new linear prior (:mod:`viotb.vio.window_marginalize`). Those
    landmarks' later observations start fresh tracks, so no measurement is used twice; the observations in
@@ -42,16 +43,18 @@ from viotb.vio.keyframing import KeyframeSelector
 from viotb.vio.lifecycle import attempt_initialization, excitation_wanted, frame_health
 from viotb.vio.marginalization import LinearPrior
 from viotb.vio.propagator import ImuBuffer, select_imu_readings
-from viotb.vio.state import ImuValues, read_init_record
+from viotb.vio.state import read_init_record
 from viotb.vio.types import CameraFrame, HealthStatus, ImuNoise, ImuSample, StateEstimate
 from viotb.vio.window_batch import integrate_gyro
+from viotb.vio.window_calib import CalibValues
+from viotb.vio.window_calib_state import OnlineCalibration
 from viotb.vio.window_divergence import divergence_reason
 from viotb.vio.window_factors import (
     NX,
     boxminus,
     imu_factor,
+    keyframe_estimate,
     predict,
-    predict_covariance,
     preintegrate,
     reprojection,
     repropagate,
@@ -70,8 +73,8 @@ from viotb.vio.window_solver import (
     newest_keyframe_covariance,
     solve_steps,
     start_solve,
-    stereo_weights,
 )
+from viotb.vio.window_weights import stereo_weights
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
 __all__ = [
@@ -154,6 +157,9 @@ class WindowEstimator:
         self._solved: tuple[LinearSystem, list[int]] | None = None
         self._solve: tuple[SolveState, list[int], tuple] | None = None  # a solve going on over frames
         self._innovation = InnovationTest()
+        self._cal_off = OnlineCalibration.create(p, calib, calib_right)  # None: the files' calibration
+        self._cal: OnlineCalibration | None = None  # it, once its variables are in the window
+        self._cams = CalibValues.from_files(calib, calib_right).cameras()  # current (R_BC, p_BC) per camera
         self._health = HealthStatus(t_s=0.0, initialized=False)
         self._diverged_reason = ""
         self._blowups = 0
@@ -177,10 +183,12 @@ class WindowEstimator:
         sigma_i = self.params.static_tilt_bias_sigma_m_s2
         if sigma_i is not None and getattr(init, "method", "") == "static":
             cov = couple_static_tilt_bias(cov, vals.R_WB, sigma_i)
-        kf = Keyframe(self._next_key, t_s, vals.copy(), {})
+        gyro = np.zeros(3) if self._last_imu is None else np.asarray(self._last_imu.gyro_B_rad_s, dtype=float)
+        kf = Keyframe(self._next_key, t_s, vals.copy(), {}, gyro_B_rad_s=gyro)
         self._next_key += 1
         self.keyframes, self.links, self.landmarks = [kf], [], {}
         self.prior = LinearPrior(np.linalg.inv(cov), np.zeros(NX), [kf.key], [vals.copy()])
+        self._cal = None
         self._cov_newest = cov
         self._marginals = None
         self._solved, self._solve = None, None
@@ -236,24 +244,10 @@ class WindowEstimator:
         t_new = self._last_imu.t_s if self._last_imu is not None else kf.t_s
         if self._est_cache is not None and self._est_cache[:2] == (self._version, t_new):
             return self._est_cache[2]
-        x, P = kf.x, self._cov_newest
-        t_out = kf.t_s
-        if t_new > kf.t_s + 1e-9:
-            x, P = self._propagate(kf, t_new)
-            t_out = t_new
-        omega = np.zeros(3)
-        if self._last_imu is not None:
-            omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - x.gyro_bias_rad_s
-        est = StateEstimate(
-            t_s=t_out,
-            R_WB=x.R_WB.copy(),
-            p_WB=x.p_WB.copy(),
-            v_WB=x.v_WB.copy(),
-            gyro_bias_rad_s=x.gyro_bias_rad_s.copy(),
-            accel_bias_m_s2=x.accel_bias_m_s2.copy(),
-            omega_B_rad_s=omega,
-            cov=0.5 * (P + P.T),
-        )
+        readings = self._readings(kf.t_s, t_new) if t_new > kf.t_s + 1e-9 else None
+        gyro = None if self._last_imu is None else self._last_imu.gyro_B_rad_s
+        args = (self.noise, self.params.midpoint_rotation, gyro)
+        est = keyframe_estimate(kf.x, self._cov_newest, kf.t_s, readings, *args)
         self._est_cache = (self._version, t_new, est)
         return est
 
@@ -322,12 +316,6 @@ class WindowEstimator:
         t, g, a = self.buffer.arrays()
         return select_imu_readings(t, g, a, t0, t1)
 
-    def _propagate(self, kf: Keyframe, t_s: float) -> tuple[ImuValues, np.ndarray]:
-        """State and covariance at ``t_s`` from keyframe ``kf`` (Forster eq. 33, the factor's Jacobians)."""
-        pre = preintegrate(*self._readings(kf.t_s, t_s), kf.x, self.noise, self.params.midpoint_rotation)
-        xj = predict(pre, kf.x)
-        return xj, predict_covariance(pre, kf.x, xj, self._cov_newest, self.noise)
-
     def _add_keyframe(self, tracks: Tracks, still: bool = False) -> None:
         p = self.params
         last = self.keyframes[-1]
@@ -344,14 +332,16 @@ class WindowEstimator:
         obs = {int(i): xy for i, xy in zip(tracks.ids.tolist(), tracks.xy_norm, strict=True)}
         self._innovation = InnovationTest()
         if self._marginals is not None:
-            cam = (self._R_BC, self._p_BC, self._sigma_norm, p.triangulation.min_depth_m)
+            cam = (*self._cams[0], self._sigma_norm, p.triangulation.min_depth_m)
+            td = None if self._cal is None else (self._cal.values.td_s, readings[1][-1])
             self._innovation = innovation_test(
-                self._marginals, pre, last.x, x, self.noise, obs, self.landmarks, cam
+                self._marginals, pre, last.x, x, self.noise, obs, self.landmarks, cam, td
             )
         obs1 = {}
         if self.calib_right is not None:
             obs1 = {int(i): xy for i, xy in zip(tracks.ids_right.tolist(), tracks.xy_norm_right, strict=True)}
-        self.keyframes.append(Keyframe(self._next_key, t_s, x, obs, still, obs1))
+        gyro = readings[1][-1].copy()
+        self.keyframes.append(Keyframe(self._next_key, t_s, x, obs, still, obs1, gyro_B_rad_s=gyro))
         self._next_key += 1
         self.links.append(ImuLink(pre, readings))
         # 2. New landmarks, 3. optimize (the rest of the step budget on the next frames), 4. marginalize.
@@ -363,9 +353,7 @@ class WindowEstimator:
 
     def _triangulate_new(self) -> None:
         p = self.params
-        cams = [(self._R_BC, self._p_BC)]
-        if self.calib_right is not None:
-            cams.append((np.asarray(self.calib_right.R_BC), np.asarray(self.calib_right.p_BC, dtype=float)))
+        cams = self._cams
         stereo = self.calib_right is not None and p.stereo_landmarks
         limits = (p.min_track_length, p.max_landmarks, stereo)
         tri = (p.triangulation, self._focal_px)
@@ -393,9 +381,14 @@ class WindowEstimator:
         repropagate(
             self.links, [kf.x for kf in self.keyframes], self.noise, *tol, self.params.midpoint_rotation
         )
+        due = self._cal is None and len(self.keyframes) >= p.calibration_start_keyframes
+        if due and self._cal_off is not None:  # the calibration's variables enter the window
+            self._cal, self.prior = self._cal_off, self._cal_off.start_prior(self.prior)
         lm_ids, pts, f = solve_factors(self.keyframes, self.links, self.prior, self.landmarks)
         fej = [kf.x_fej for kf in self.keyframes] if p.first_estimate_jacobians else None
-        st = start_solve([kf.x for kf in self.keyframes], pts, f, self._weights, p.initial_damping, fej)
+        cal = None if self._cal is None else self._cal.values
+        f = f if self._cal is None else self._cal.factors(self.keyframes, f)
+        st = start_solve([kf.x for kf in self.keyframes], pts, f, self._weights, p.initial_damping, fej, cal)
         self._solve = (st, lm_ids, (f.obs, f.obs_right))
 
     def _solve_steps(self, steps: int, on_keyframe: bool) -> None:
@@ -417,6 +410,8 @@ class WindowEstimator:
             kf.x = x
         for j, fid in enumerate(lm_ids):
             self.landmarks[fid] = st.pts[j]
+        if self._cal is not None:
+            self._cal.values, self._cams = st.calib, st.calib.cameras()
         done = st.converged or st.iterations >= p.max_iterations
         if done and (not on_keyframe or p.keyframe_frame_iterations >= p.max_iterations):
             self._finish_solve()
@@ -437,13 +432,15 @@ class WindowEstimator:
         self._marginals = WindowMarginals.from_system(sys, lm_ids)
         self._solved = (sys, lm_ids)
         self._cov_newest = self._marginals.newest_covariance
+        if self._cal is not None:
+            self._cal.cov = self._marginals.calib_cov
         self._last_cost_per_res = sys.meas_cost / max(sys.n_res, 1)
         self._used = len(lm_ids)
         # 6. Outliers and landmarks behind a camera leave the window with their observations.
         if len(lm_ids):
-            cams = [(obs, self._R_BC, self._p_BC)]
+            cams = [(obs, *self._cams[0])]
             if self.calib_right is not None:
-                cams.append((obs1, self.calib_right.R_BC, np.asarray(self.calib_right.p_BC, dtype=float)))
+                cams.append((obs1, *self._cams[1]))
             bad = (sys.max_err > p.outlier_threshold) | seen_behind(
                 xs, pts, cams, p.triangulation.min_depth_m
             )
@@ -468,6 +465,7 @@ class WindowEstimator:
             self._weights,
             self.params.first_estimate_jacobians,
             self._solved,
+            self._cal,
         )
         self._solved = None
 
@@ -497,4 +495,5 @@ class WindowEstimator:
             chi2_rejections=inn.rejected,
             nis_per_dof=inn.nis_per_dof,
             nis_per_dof_all=inn.nis_per_dof_all,
+            calibration=None if self._cal is None else self._cal.drift(),
         )

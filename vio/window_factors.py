@@ -15,7 +15,7 @@ import numpy as np
 from viotb.vio.lie import exp_so3, log_so3, right_jacobian_inv_so3, right_jacobian_so3, skew
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
-from viotb.vio.types import ImuNoise, gravity_W
+from viotb.vio.types import ImuNoise, StateEstimate, gravity_W
 from viotb.vio.window_batch import BatchPreintegration
 from viotb.vio.window_map import ImuLink
 
@@ -102,6 +102,40 @@ def predict_covariance(
     _, J_i, J_j, C = imu_factor(pre, xi, xj, noise)
     Jj_inv = np.linalg.inv(J_j)
     return Jj_inv @ (J_i @ P_i @ J_i.T + C) @ Jj_inv.T
+
+
+def keyframe_estimate(
+    x: ImuValues,
+    P: np.ndarray,
+    t_s: float,
+    readings: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    noise: ImuNoise,
+    rotate_midpoint: bool,
+    gyro_B_rad_s: np.ndarray | None,
+) -> StateEstimate:
+    """A keyframe's values ``x`` and covariance ``P`` (NX, NX) at ``t_s``, propagated through ``readings``.
+
+    Forster eq. 33 and the factor's Jacobians (:func:`predict`, :func:`predict_covariance`) to the end of
+    ``readings`` (``(t_s (n,), gyro (n, 3), accel (n, 3))`` from the keyframe on), or at ``t_s`` when None;
+    the angular rate is ``gyro_B_rad_s`` (the newest reading) less the gyro bias (zero when None).
+    """
+    if readings is not None:
+        pre = preintegrate(*readings, x, noise, rotate_midpoint)
+        xj = predict(pre, x)
+        x, P, t_s = xj, predict_covariance(pre, x, xj, P, noise), readings[0][-1]
+    omega = np.zeros(3)
+    if gyro_B_rad_s is not None:
+        omega = np.asarray(gyro_B_rad_s, dtype=float) - x.gyro_bias_rad_s
+    return StateEstimate(
+        t_s=t_s,
+        R_WB=x.R_WB.copy(),
+        p_WB=x.p_WB.copy(),
+        v_WB=x.v_WB.copy(),
+        gyro_bias_rad_s=x.gyro_bias_rad_s.copy(),
+        accel_bias_m_s2=x.accel_bias_m_s2.copy(),
+        omega_B_rad_s=omega,
+        cov=0.5 * (P + P.T),
+    )
 
 
 def imu_factor(

@@ -29,6 +29,8 @@ class Keyframe:
         obs_right: Feature id -> undistorted normalized coordinates in cam1 (stereo rigs), shape (2,).
         x_fej: Its values when a marginalization prior first held it: the linearization point of its
             Jacobians from then on (first-estimate Jacobians), or None before.
+        gyro_B_rad_s: The gyro reading (rad/s, bias not removed) at the keyframe's time, shape (3,), or
+            None (online time-offset calibration, :mod:`viotb.vio.window_calib`).
     """
 
     key: int
@@ -38,6 +40,7 @@ class Keyframe:
     still: bool = False
     obs_right: dict[int, np.ndarray] = field(default_factory=dict)
     x_fej: ImuValues | None = None
+    gyro_B_rad_s: np.ndarray | None = None
 
     def camera_obs(self, cam: int) -> dict[int, np.ndarray]:
         """Observations of camera ``cam`` (0: ``obs``, 1: ``obs_right``)."""

@@ -21,6 +21,8 @@ from collections.abc import Iterable
 import numpy as np
 from viotb.vio.marginalization import LinearPrior, schur_complement
 from viotb.vio.state import ImuValues
+from viotb.vio.window_calib_state import OnlineCalibration
+from viotb.vio.window_calib_system import CalibFactors
 from viotb.vio.window_factors import NX
 from viotb.vio.window_map import (
     ImuLink,
@@ -41,6 +43,7 @@ def window_factors(
     no_motion: list[int],
     obs: tuple[np.ndarray, np.ndarray, np.ndarray],
     obs1: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    calib: CalibFactors | None = None,
 ) -> Factors:
     """The window's factors: IMU ``link_idx``, the prior, ``still``/``no_motion`` keyframes, observations.
 
@@ -53,6 +56,7 @@ def window_factors(
         no_motion: Window indices ``k`` of no-motion factors between keyframes ``k - 1`` and ``k``.
         obs: Cam0 observations (:func:`observations`).
         obs1: Cam1 observations, or None.
+        calib: The online calibration's factors, or None.
     """
     key_to_k = {kf.key: k for k, kf in enumerate(keyframes)}
     prior_k = [] if prior is None else [key_to_k[key] for key in prior.keys]
@@ -64,6 +68,7 @@ def window_factors(
         no_motion=[(k, keyframes[k].t_s - keyframes[k - 1].t_s) for k in no_motion],
         obs=obs,
         obs_right=obs1,
+        calib=calib,
     )
 
 
@@ -169,6 +174,7 @@ def marginalize_oldest(
     w8: FactorWeights,
     first_estimates: bool,
     solved: tuple[LinearSystem, list[int]] | None = None,
+    calib: OnlineCalibration | None = None,
 ) -> tuple[LinearPrior, list[Keyframe], list[ImuLink]]:
     """Fold the oldest keyframe and the landmarks it saw into a new linear prior (Schur complement).
 
@@ -182,6 +188,9 @@ def marginalize_oldest(
             those without one).
         solved: ``(system, landmark ids)`` of a solve linearized at the keyframes' current values (and
             first estimates) over those landmarks (its rows), or None (linearize the factors here).
+        calib: The online calibration, or None. Its variables stay, after the kept keyframes' in the new
+            prior, linearized at its current values (its ``x0`` becomes them); the factors are linearized
+            here (the solve's blocks do not hold the calibration's columns).
 
     Returns:
         ``(new prior over keyframes 1..N-1, keyframes[1:], links[1:])``.
@@ -193,7 +202,7 @@ def marginalize_oldest(
     no_motion = [1] if old.still and keyframes[1].still else []
     xs_lin = fix_first_estimates(keyframes) if first_estimates else None
     # 1. The factors touching the marginalized variables.
-    if solved is not None:
+    if solved is not None and calib is None:
         sys_all, solved_ids = solved
         row_of = {f: j for j, f in enumerate(solved_ids)}
         base = _solved_base(sys_all, xs, w8, still, no_motion, keyframes)
@@ -203,12 +212,15 @@ def marginalize_oldest(
         obs = observations(keyframes, lm_ids)
         obs1 = observations(keyframes, lm_ids, cam=1)
         f = window_factors(keyframes, links, prior, [0], still, no_motion, obs, obs1)
-        sys = linearize(xs, pts, f, w8, xs_lin=xs_lin)
+        f = f if calib is None else calib.factors(keyframes, f)
+        sys = linearize(xs, pts, f, w8, xs_lin=xs_lin, calib=None if calib is None else calib.values)
     # 2. Eliminate those landmarks, then the oldest keyframe.
     S, g_red, _ = schur_reduce(sys, 0.0)
     H_p, g_p, _ = schur_complement(S, g_red, np.arange(NX))
     rest = keyframes[1:]
     new_prior = LinearPrior(H_p, g_p, [kf.key for kf in rest], [kf.x.copy() for kf in rest])
+    if calib is not None:
+        calib.x0 = calib.values
     for fid in lm_ids:
         drop_landmark(keyframes, landmarks, fid)
     return new_prior, rest, links[1:]

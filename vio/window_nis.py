@@ -19,12 +19,13 @@ rotation moves the features against the prediction while the platform moves, and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
+from viotb.vio.window_calib import image_velocity
 from viotb.vio.window_factors import NX, imu_factor, reprojection
 from viotb.vio.window_solver import LinearSystem, pose_index, schur_reduce
 
@@ -41,19 +42,25 @@ class WindowMarginals:
         H_ll_inv: Inverse landmark information blocks, shape (L, 3, 3).
         E: Pose-landmark information blocks, shape (L, 6 N, 3).
         index: Feature id -> landmark row.
+        calib_cov: Covariance of the online calibration's C variables (after the keyframes' in the system,
+            :mod:`viotb.vio.window_calib_system`), shape (C, C); (0, 0) without. The innovations leave
+            its uncertainty out.
     """
 
     Sigma: np.ndarray
     H_ll_inv: np.ndarray
     E: np.ndarray
     index: dict[int, int]
+    calib_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     @classmethod
     def from_system(cls, sys: LinearSystem, lm_ids: list[int]) -> WindowMarginals:
         """Invert the reduced system of a solve over landmarks ``lm_ids`` (its row order)."""
         S, _, H_ll_inv = schur_reduce(sys, 0.0)
-        Sigma = np.linalg.inv(S)
-        return cls(0.5 * (Sigma + Sigma.T), H_ll_inv, sys.E, {f: j for j, f in enumerate(lm_ids)})
+        Sigma_all = np.linalg.inv(S)
+        n, n6 = len(S) - sys.n_calib, sys.E.shape[1] - sys.n_calib
+        Sigma, E, index = Sigma_all[:n, :n], sys.E[:, :n6], {f: j for j, f in enumerate(lm_ids)}
+        return cls(0.5 * (Sigma + Sigma.T), H_ll_inv, E, index, Sigma_all[n:, n:])
 
     @property
     def newest_covariance(self) -> np.ndarray:
@@ -87,6 +94,7 @@ def innovation_test(
     obs: dict[int, np.ndarray],
     landmarks: dict[int, np.ndarray],
     camera: tuple[np.ndarray, np.ndarray, float, float],
+    time_offset: tuple[float, np.ndarray] | None = None,
 ) -> InnovationTest:
     """NIS of the new keyframe ``j`` (predicted from the newest keyframe ``n`` by ``pre``) (module docstring).
 
@@ -99,6 +107,8 @@ def innovation_test(
         obs: Feature id -> undistorted normalized xy (2,) seen by ``j``'s camera.
         landmarks: Feature id -> point in W (m), (3,).
         camera: ``(R_BC (3, 3), p_BC (3,), sigma_norm, min_depth_m)`` of that camera.
+        time_offset: ``(td (s), gyro reading at j (3,) rad/s)`` of the online time-offset calibration: the
+            predictions become ``z + td V`` (:mod:`viotb.vio.window_calib`), or None.
     """
     fids = [f for f in obs if f in landmarks and f in marg.index]
     if not fids:
@@ -125,6 +135,9 @@ def innovation_test(
     z, depth, J_x, J_l = reprojection(
         np.broadcast_to(x_j.R_WB, (m, 3, 3)), np.broadcast_to(x_j.p_WB, (m, 3)), p_W, R_BC, p_BC
     )
+    if time_offset is not None:
+        omega_B = np.broadcast_to(time_offset[1] - x_j.gyro_bias_rad_s, (m, 3))
+        z = z + time_offset[0] * image_velocity(J_x, omega_B, np.broadcast_to(x_j.v_WB, (m, 3)))
     ok = depth > min_depth_m
     if not np.any(ok):
         return InnovationTest()

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from viotb.vio.frontend import KltParams
 from viotb.vio.keyframing import KeyframeParams
@@ -112,6 +112,14 @@ class WindowParams:
             horizontal accelerometer bias (the static solve reads the bias as tilt,
             :mod:`viotb.vio.window_init`) and leave this 1-sigma (m/s^2) of the horizontal bias independent
             of the tilt; None: the initializer's independent variances (hover position NEES 0.12).
+        estimate_extrinsics: Estimate every camera's ``R_BC``, ``p_BC`` online (:mod:`viotb.vio.window_calib`;
+            variables of the window that marginalization keeps, with a prior of the sigmas below).
+        extrinsic_sigma_rad: Prior sigma (rad) of the extrinsic rotation (per axis; the MSCKF's).
+        extrinsic_sigma_m: Prior sigma (m) of the extrinsic translation (per axis).
+        estimate_time_offset: Estimate the camera-IMU time offset online (one for all cameras).
+        time_offset_sigma_s: Prior sigma (s) of the time offset.
+        calibration_start_keyframes: The calibration's variables (and their prior) enter the window once it
+            holds this many keyframes after an initialization; before, the files' calibration is fixed.
     """
 
     window_size: int = 10
@@ -153,6 +161,34 @@ class WindowParams:
     midpoint_rotation: bool = True
     track_noise: bool = False
     static_tilt_bias_sigma_m_s2: float | None = 0.01
+    estimate_extrinsics: bool = False
+    extrinsic_sigma_rad: float = 0.005
+    extrinsic_sigma_m: float = 0.005
+    estimate_time_offset: bool = False
+    time_offset_sigma_s: float = 0.005
+    calibration_start_keyframes: int = 10
+
+    def with_online_calibration(
+        self,
+        time_offset_sigma_s: float = 0.02,
+        extrinsic_sigma_rad: float = 0.05,
+        extrinsic_sigma_m: float | None = None,
+    ) -> WindowParams:
+        """These settings with the time offset and the extrinsics estimated online (the MSCKF's wide priors).
+
+        :meth:`viotb.vio.msckf_params.MsckfParams.with_online_calibration`'s defaults (the translation keeps
+        its 5 mm prior unless ``extrinsic_sigma_m`` is given: 2 cm off in the file is then only half found,
+        ``tests/test_window_calib_streams.py``); the calibration that moves names the cause
+        (:class:`viotb.vio.health.HealthMonitor`).
+        """
+        return replace(
+            self,
+            estimate_time_offset=True,
+            time_offset_sigma_s=time_offset_sigma_s,
+            estimate_extrinsics=True,
+            extrinsic_sigma_rad=extrinsic_sigma_rad,
+            extrinsic_sigma_m=self.extrinsic_sigma_m if extrinsic_sigma_m is None else extrinsic_sigma_m,
+        )
 
 
 def track_noise_q(p: WindowParams) -> float:

@@ -88,7 +88,7 @@ class WhiteBlocks:
         H_kk = np.zeros((n_kf, n_kf, 6, 6))
         g_k = np.zeros((n_kf, 6))
         np.add.at(H_kk, (self.kf_i[sel], self.kf_i[sel]), self.A[sel, :6, :6])
-        np.add.at(g_k, self.kf_i[sel], self.A[sel, :6, 9])
+        np.add.at(g_k, self.kf_i[sel], self.A[sel, :6, -1])
         return H_kk, g_k
 
 
@@ -147,6 +147,7 @@ def add_reprojection(
     cam: tuple[np.ndarray, np.ndarray, float, float],
     sums: tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs,
     blocks: list[WhiteBlocks | TrackBlocks],
+    J_extra: np.ndarray | None = None,
 ) -> tuple[float, int]:
     """Add one camera's Huber-weighted reprojection factors to the system (in place).
 
@@ -166,6 +167,9 @@ def add_reprojection(
             (L, M); correlated track noise: the :class:`TrackPairs` of ``obs``.
         blocks: This camera's blocks are appended (:class:`WhiteBlocks` or :class:`TrackBlocks`): what
             the system of a subset of the landmarks needs.
+        J_extra: Jacobians (M, 2, C) w.r.t. C more variables (online calibration,
+            :mod:`viotb.vio.window_calib_system`), white noise only: their columns sit in the blocks ``A``
+            between the landmark's and the residual (``A[:, 9 : 9 + C]``), or None.
 
     Returns:
         ``(robust cost, residual count)``.
@@ -190,9 +194,12 @@ def add_reprojection(
     # pose-pose (6x6), pose-point (E), point-point and both gradients. Sums over the observations (pairs)
     # of each keyframe and each landmark are sparse products (faster than ``np.add.at``); the pose blocks
     # sit in H seen as (N, NX, N, NX).
-    J = np.concatenate([J_pose * s, J_pt * s, r[:, :, None]], axis=2)
-    H4 = H.reshape(N, NX, N, NX)
+    extra = [] if J_extra is None else [J_extra * s]
+    J = np.concatenate([J_pose * s, J_pt * s, *extra, r[:, :, None]], axis=2)
+    H4, nj = H.reshape(N, NX, N, NX), J.shape[2]
     if isinstance(sums, TrackPairs):
+        if J_extra is not None:
+            raise ValueError("add_reprojection: more variables (online calibration) need white track noise")
         # Views on the (landmark, keyframe) grid: Y_u = sum_v Lambda_uv J_v gives every block but the
         # pose-pose ones per observation (J_u^T Y_u); those pair different keyframes (_track_pose_terms).
         L = len(H_ll)
@@ -212,14 +219,14 @@ def add_reprojection(
         A = (np.swapaxes(J, 1, 2) * w[:, None, None]) @ J
         M = len(kf_i)
         sum_k, sum_l = sums
-        per_kf = (sum_k @ A.reshape(M, 100)).reshape(N, 10, 10)
-        per_lm = (sum_l @ A.reshape(M, 100)).reshape(-1, 10, 10)
+        per_kf = (sum_k @ A.reshape(M, nj * nj)).reshape(N, nj, nj)
+        per_lm = (sum_l @ A.reshape(M, nj * nj)).reshape(-1, nj, nj)
         k_all = np.arange(N)
         H4[k_all, :6, k_all, :6] += per_kf[:, :6, :6]
-        g.reshape(N, NX)[:, :6] += per_kf[:, :6, 9]
+        g.reshape(N, NX)[:, :6] += per_kf[:, :6, -1]
         E[lm_i, kf_i] += A[:, :6, 6:9]
         blocks.append(WhiteBlocks(kf_i, lm_i, A))
         cost = 0.5 * float(np.sum(huber))
     H_ll += per_lm[:, 6:9, 6:9]
-    g_l += per_lm[:, 6:9, 9]
+    g_l += per_lm[:, 6:9, -1]
     return cost, 2 * len(kf_i)

@@ -14,12 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import sparse
-from viotb.vio.camera import CameraCalibration
 from viotb.vio.marginalization import LinearPrior
 from viotb.vio.preintegration import ImuPreintegration
 from viotb.vio.state import ImuValues
-from viotb.vio.types import ImuNoise
 from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, retract_batch, stack_values
+from viotb.vio.window_calib import CalibValues
+from viotb.vio.window_calib_system import CalibFactors, CalibTerms
 from viotb.vio.window_factors import NX
 from viotb.vio.window_reprojection import (
     TrackBlocks,
@@ -29,55 +29,7 @@ from viotb.vio.window_reprojection import (
     summing_matrix,
     track_pairs,
 )
-
-
-@dataclass(frozen=True)
-class FactorWeights:
-    """What the factors need besides the variables (noise models and the camera extrinsics).
-
-    Attributes:
-        noise: IMU noise densities.
-        R_BC: Camera-to-body rotation, shape (3, 3).
-        p_BC: Camera origin in B (m), shape (3,).
-        sigma_norm: Feature measurement sigma in normalized image coordinates (pixel sigma / focal length).
-        huber_threshold: Huber threshold on the whitened reprojection error norm (sigmas).
-        zero_velocity_sigma_m_s: Sigma (m/s) of the zero-velocity factor (and, times ``dt``, of the
-            no-motion factor).
-        R_BC1: Cam1-to-body rotation of a stereo rig, shape (3, 3), or None (mono).
-        p_BC1: Cam1 origin in B (m), shape (3,), or None.
-        sigma_norm1: Cam1 measurement sigma in its normalized coordinates (pixel sigma / its focal length).
-        track_q: Correlated track noise ``track_random_walk_px2_per_px / pixel_sigma_px^2`` (per px of image
-            motion; :mod:`viotb.vio.window_reprojection`), 0 for white noise.
-        focal_px: Cam0's focal length (px), the clock of the track noise.
-        focal_px1: Cam1's.
-    """
-
-    noise: ImuNoise
-    R_BC: np.ndarray
-    p_BC: np.ndarray
-    sigma_norm: float
-    huber_threshold: float
-    zero_velocity_sigma_m_s: float
-    R_BC1: np.ndarray | None = None
-    p_BC1: np.ndarray | None = None
-    sigma_norm1: float | None = None
-    track_q: float = 0.0
-    focal_px: float = 1.0
-    focal_px1: float = 1.0
-
-
-def stereo_weights(
-    calib_right: CameraCalibration | None, pixel_sigma_px: float
-) -> tuple[np.ndarray | None, np.ndarray | None, float | None]:
-    """``(R_BC1, p_BC1, sigma_norm1)`` of :class:`FactorWeights` for cam1 (all None for a mono rig)."""
-    if calib_right is None:
-        return None, None, None
-    cam = calib_right.camera
-    return (
-        np.asarray(calib_right.R_BC, dtype=float),
-        np.asarray(calib_right.p_BC, dtype=float),
-        pixel_sigma_px / (0.5 * (cam.fx + cam.fy)),
-    )
+from viotb.vio.window_weights import FactorWeights
 
 
 @dataclass(frozen=True)
@@ -92,6 +44,8 @@ class Factors:
         no_motion: ``(k, dt_s)`` of each no-motion factor between keyframes ``k - 1`` and ``k``.
         obs: ``(kf index (M,), landmark index (M,), xy_norm (M, 2))`` of the cam0 reprojection factors.
         obs_right: The same for cam1 (stereo rigs; None or empty arrays for mono).
+        calib: The online calibration's (:mod:`viotb.vio.window_calib_system`), or None (the extrinsics
+            and time offset of :class:`FactorWeights` are fixed).
     """
 
     imu: list[tuple[int, ImuPreintegration]]
@@ -101,6 +55,7 @@ class Factors:
     no_motion: list[tuple[int, float]]
     obs: tuple[np.ndarray, np.ndarray, np.ndarray]
     obs_right: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    calib: CalibFactors | None = None
 
 
 @dataclass
@@ -123,6 +78,8 @@ class LinearSystem:
         imu_blocks: ``(k (K,), J^T J (K, 2 NX, 2 NX), J^T r (K, 2 NX))`` of the whitened IMU factors between
             keyframes ``k`` and ``k + 1``, or None.
         prior_terms: ``(indices (P NX,), H (P NX, P NX), gradient (P NX,))`` of the prior here, or None.
+        n_calib: C online-calibration variables after the keyframes' states (``H`` and ``g`` are then
+            ``N NX + C`` wide and ``E`` has ``6 N + C`` rows; :mod:`viotb.vio.window_calib_system`).
     """
 
     H: np.ndarray
@@ -139,11 +96,20 @@ class LinearSystem:
     )
     imu_blocks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     prior_terms: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    n_calib: int = 0
 
 
 def pose_index(n_kf: int) -> np.ndarray:
     """Indices of the ``[dtheta, dp]`` entries of ``n_kf`` keyframes in the stacked error state, (6 n_kf,)."""
     return (np.arange(n_kf)[:, None] * NX + np.arange(6)[None, :]).ravel()
+
+
+def coupled_index(sys: LinearSystem) -> np.ndarray:
+    """Entries of the system that the landmarks couple to (the rows of ``E``): poses, then calibration."""
+    n_kf = (sys.E.shape[1] - sys.n_calib) // 6
+    if not sys.n_calib:
+        return pose_index(n_kf)
+    return np.concatenate([pose_index(n_kf), n_kf * NX + np.arange(sys.n_calib)])
 
 
 @dataclass(frozen=True)
@@ -185,6 +151,7 @@ def linearize(
     w8: FactorWeights,
     prep: PreparedFactors | None = None,
     xs_lin: list[ImuValues] | None = None,
+    calib: CalibValues | None = None,
 ) -> LinearSystem:
     """Whitened Gauss-Newton system at ``(xs, pts)`` (IRLS Huber weights) and its robust cost.
 
@@ -202,6 +169,7 @@ def linearize(
         w8: Their noise models and the extrinsics.
         prep: ``prepare(f, w8)`` when the caller linearizes the same factors repeatedly (None: made here).
         xs_lin: Keyframe values of the Jacobians (N), or None (``xs``).
+        calib: Current online calibration (``f.calib`` is then set), or None.
     """
     N, L = len(xs), len(pts)
     prep = prep if prep is not None else prepare(f, w8, N, L)
@@ -214,6 +182,7 @@ def linearize(
     R, rest = stack_values(xs)
     R_lin, rest_lin = (R, rest) if xs_lin is None else stack_values(xs_lin)
     imu_blocks = prior_terms = None
+    cal = None if calib is None else CalibTerms.zeros(N, L, f.calib.layout.dim)
     # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
     if len(prep.imu.k):
         r, J_i, J_j = imu_factors(prep.imu, R, rest, jacobians=xs_lin is None)
@@ -240,11 +209,15 @@ def linearize(
         k_pr = np.asarray(f.prior_k, dtype=np.int64)
         idx = (k_pr[:, None] * NX + np.arange(NX)[None, :]).ravel()
         dx = boxminus_batch(R[k_pr], rest[k_pr], prep.prior_R0, prep.prior_rest0).ravel()
-        H[np.ix_(idx, idx)] += pr.H
-        g_pr = pr.H @ dx + pr.g
-        g[idx] += g_pr
+        if cal is None:
+            H[np.ix_(idx, idx)] += pr.H
+            g_pr = pr.H @ dx + pr.g
+            g[idx] += g_pr
+            prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
+        else:
+            dc = calib.boxminus(f.calib.layout, f.calib.x0)
+            g_pr, prior_cost = cal.add_prior(H, g, idx, pr, dx, dc)
         prior_terms = (idx, pr.H, g_pr)
-        prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
         cost += prior_cost
     # b2. Zero-velocity factors ``v / sigma`` on still keyframes.
     for k in f.still:
@@ -278,12 +251,19 @@ def linearize(
     if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
         cams.append((f.obs_right, (w8.R_BC1, w8.p_BC1, w8.sigma_norm1, k_h), prep.sums[1]))
     poses = (R, rest[:, :3], R_lin, rest_lin[:, :3])
+    if cal is not None:  # the calibration's values replace the extrinsics (window_calib_system)
+        cams_c = [(obs, cam[2], k_h, sums) for obs, cam, sums in cams]
+        arrays = (H, g, H_ll, g_l, E, max_err)
+        c, n = cal.add_reprojection(arrays, poses, rest, pts, cams_c, calib, f.calib, blocks)
+        cost, n_res, cams = cost + c, n_res + n, []
     for obs, cam, sums in cams:
         c, n = add_reprojection(H, g, H_ll, g_l, E, max_err, poses, pts, obs, cam, sums, blocks)
         cost += c
         n_res += n
     E_flat = E.reshape(L, N * 6, 3)
-    meas, terms = cost - prior_cost, (blocks, imu_blocks, prior_terms)
+    if cal is not None:
+        H, g, E_flat = cal.assemble(H, g, E_flat)
+    meas, terms = cost - prior_cost, (blocks, imu_blocks, prior_terms, 0 if cal is None else len(cal.g_c))
     return LinearSystem(H, g, H_ll, g_l, E_flat, cost, n_res, max_err, meas, *terms)
 
 
@@ -300,7 +280,7 @@ def schur_reduce(sys: LinearSystem, lam: float) -> tuple[np.ndarray, np.ndarray,
     EH = sys.E @ H_ll_inv
     L = len(H_ll_inv)
     EH_flat = np.swapaxes(EH, 0, 1).reshape(N6, 3 * L)
-    pidx = pose_index(N6 // 6)
+    pidx = coupled_index(sys)
     S = H.copy()
     S[np.ix_(pidx, pidx)] -= EH_flat @ np.swapaxes(sys.E, 0, 1).reshape(N6, 3 * L).T
     g = sys.g.copy()
@@ -364,6 +344,7 @@ class SolveState:
         w8: Their noise models and the extrinsics.
         prep: ``prepare(f, w8, ...)``.
         fej: First-estimate values per keyframe (:func:`levenberg_marquardt`), or None.
+        calib: Current online calibration (``f.calib`` set), or None.
     """
 
     xs: list[ImuValues]
@@ -376,6 +357,7 @@ class SolveState:
     w8: FactorWeights
     prep: PreparedFactors
     fej: list[ImuValues | None] | None
+    calib: CalibValues | None = None
 
 
 def _jacobian_values(xs_at: list[ImuValues], fej: list[ImuValues | None] | None) -> list[ImuValues] | None:
@@ -390,11 +372,12 @@ def start_solve(
     w8: FactorWeights,
     initial_damping: float,
     fej: list[ImuValues | None] | None = None,
+    calib: CalibValues | None = None,
 ) -> SolveState:
     """Linearize at the initial values: a solve of no steps yet (:func:`solve_steps` takes them)."""
     prep = prepare(f, w8, len(xs), len(pts))
-    sys = linearize(xs, pts, f, w8, prep, _jacobian_values(xs, fej))
-    return SolveState(xs, pts, sys, initial_damping, 0, False, f, w8, prep, fej)
+    sys = linearize(xs, pts, f, w8, prep, _jacobian_values(xs, fej), calib)
+    return SolveState(xs, pts, sys, initial_damping, 0, False, f, w8, prep, fej, calib)
 
 
 def solve_steps(
@@ -405,7 +388,7 @@ def solve_steps(
     One solve taken in several calls makes the same steps, in the same order and from the same values and
     damping, as one call with their sum: the rules are :func:`levenberg_marquardt`'s.
     """
-    pidx = pose_index(len(st.xs))
+    pidx = coupled_index(st.system)
     taken = 0
     while taken < max_steps and not st.converged:
         sys, lam = st.system, st.damping
@@ -416,14 +399,19 @@ def solve_steps(
         if predicted_decrease(sys, lam, dx, dl) < min_decrease:
             st.converged = True
             break
+        cal_new = None
+        if st.calib is not None:
+            n_x = len(st.xs) * NX
+            dx, cal_new = dx[:n_x], st.calib.retract(st.f.calib.layout, dx[n_x:])
         xs_new = retract_batch(st.xs, dx)
         pts_new = st.pts + dl
-        sys_new = linearize(xs_new, pts_new, st.f, st.w8, st.prep, _jacobian_values(xs_new, st.fej))
+        jac = _jacobian_values(xs_new, st.fej)
+        sys_new = linearize(xs_new, pts_new, st.f, st.w8, st.prep, jac, cal_new)
         taken += 1
         st.iterations += 1
         if np.isfinite(sys_new.cost) and sys_new.cost <= sys.cost:
             small = sys.cost - sys_new.cost < relative_tolerance * sys.cost
-            st.xs, st.pts, st.system = xs_new, pts_new, sys_new
+            st.xs, st.pts, st.system, st.calib = xs_new, pts_new, sys_new, cal_new
             st.damping = max(lam / 10.0, 1e-8)
             st.converged = bool(small)
         else:
@@ -479,7 +467,7 @@ def levenberg_marquardt(
 def newest_keyframe_covariance(sys: LinearSystem) -> np.ndarray:
     """Covariance of the newest keyframe: the inverse of its marginal information, shape (NX, NX)."""
     S, _, _ = schur_reduce(sys, 0.0)
-    n = S.shape[0]
+    n, k = S.shape[0], S.shape[0] - sys.n_calib - NX
     e_last = np.zeros((n, NX))
-    e_last[n - NX :] = np.eye(NX)
-    return np.linalg.solve(S, e_last)[n - NX :]
+    e_last[k : k + NX] = np.eye(NX)
+    return np.linalg.solve(S, e_last)[k : k + NX]

@@ -44,8 +44,9 @@ class EvalOptions:
             (``cam0`` and ``cam1``: ``calib_right`` to the estimator, ``image_right`` / ``features_right``
             in each frame).
         monitor: Run the health monitor beside the estimator (result ``conditions``).
-        calibrate: Estimate the camera-IMU time offset and extrinsics online (``msckf`` only; result
-            ``calibration``). The conditions are those of the first pass, which starts from the file's
+        calibrate: Estimate the camera-IMU time offset and extrinsics online (``msckf``:
+            ``MsckfParams.with_online_calibration``; ``window``: ``WindowParams.with_online_calibration``;
+            result ``calibration``). The conditions are those of the first pass, which starts from the file's
             calibration; each further pass starts from the previous pass's estimate (an EKF does not undo
             the linearization errors of a large initial offset: 10 ms in the file left 1.2-1.4 ms after one
             10 s pass, 0.06-0.25 ms after two), and the metrics are those of the last pass.

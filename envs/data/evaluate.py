@@ -33,6 +33,7 @@ from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.metrics import evaluate_trajectory
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.types import StateEstimate, TrajectoryArrays
+from viotb.vio.window_params import WindowParams
 
 ProgressFn = Callable[[float, float], None]
 
@@ -55,7 +56,7 @@ def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | No
     """Replay a dataset through an estimator, with the health monitor when ``opts.monitor``.
 
     Raises:
-        ValueError: ``opts.calibrate`` with an estimator other than ``msckf``.
+        ValueError: ``opts.calibrate`` with an estimator other than ``msckf`` or ``window``.
     """
     if opts.cameras == 2 and not ds.has_stereo:
         raise ValueError(f"{ds.root}: --cameras 2 needs a cam1 folder (this dataset is mono)")
@@ -66,21 +67,24 @@ def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | No
         )
     # The stereo keyword goes only to a stereo run, so mono runs do not depend on the stereo estimators.
     stereo = {"calib_right": ds.calib_right} if opts.cameras == 2 else {}
-    params = opts.msckf
+    params, window = opts.msckf, opts.window
     if opts.calibrate:
-        if opts.estimator != "msckf":
+        if opts.estimator not in ("msckf", "window"):
             raise ValueError(
-                f"--calibrate needs the msckf estimator (online time-offset and extrinsic calibration); "
-                f"{opts.estimator!r} has none"
+                f"--calibrate needs the msckf or window estimator (online time-offset and extrinsic "
+                f"calibration); {opts.estimator!r} has none"
             )
-        params = (params if params is not None else MsckfParams()).with_online_calibration()
+        if opts.estimator == "msckf":
+            params = (params if params is not None else MsckfParams()).with_online_calibration()
+        else:
+            window = (window if window is not None else WindowParams()).with_online_calibration()
     est = make_estimator(
         opts.estimator,
         ds.calib,
         ds.imu_noise,
         frontend=opts.frontend,
         params=params,
-        window_params=opts.window,
+        window_params=window,
         **stereo,
     )
     filter_sigma = (params if params is not None else MsckfParams()).pixel_sigma_px

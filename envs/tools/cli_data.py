@@ -131,7 +131,9 @@ def eval_(
         "or bridge (linear interpolation, reported in imu_gaps and notes).",
     ),
     calibrate: bool = typer.Option(
-        False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (msckf only)."
+        False,
+        "--calibrate",
+        help="Estimate the camera-IMU time offset and extrinsics online (msckf or window).",
     ),
     imu_intrinsics: str = choice_option(
         "none",
@@ -174,8 +176,8 @@ def eval_(
     from viotb.envs.data.evaluate import NULL_REASONS, EvalOptions, evaluate_dataset
 
     check_out(out, overwrite)
-    if calibrate and estimator != "msckf":
-        fail(f"--calibrate needs --estimator msckf: {estimator!r} has no online calibration")
+    if calibrate and estimator not in ("msckf", "window"):
+        fail(f"--calibrate needs --estimator msckf or window: {estimator!r} has no online calibration")
     for flag, value, off in (
         ("--imu-intrinsics", imu_intrinsics, "none"),
         ("--klt-noise", klt_noise, "default"),
