@@ -150,7 +150,7 @@ def _stream(seed: int, seconds: float):
 def _run_window(stream, params: WindowParams | None = None) -> tuple[WindowEstimator, float, dict]:
     """Window estimator over a stream: (estimator, ATE after a yaw+translation alignment (m), run info)."""
     from viotb.envs.run.replay import monitor_run
-    from viotb.vio.metrics import align_umeyama
+    from viotb.vio.metrics import align_umeyama, positions_at
 
     prm = params if params is not None else WindowParams(frontend="sim", pixel_sigma_px=stream.pixel_sigma_px)
     est = WindowEstimator(stream.calib_given, stream.noise, prm)
@@ -161,7 +161,7 @@ def _run_window(stream, params: WindowParams | None = None) -> tuple[WindowEstim
     t = np.array([e.t_s for e in ok])
     p = np.array([e.p_WB for e in ok])
     gt = stream.truth
-    p_gt = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
+    p_gt = positions_at(gt, t)
     al = align_umeyama(p, p_gt, "posyaw")
     ate = float(np.sqrt(np.mean(np.linalg.norm(al.apply(p) - p_gt, axis=1) ** 2)))
     return est, ate, {"run": run, "wall_s": wall, "estimates": ok}

@@ -17,7 +17,7 @@ from viotb.envs.scenarios.failures import FAILURES
 from viotb.envs.scenarios.streams import synthesize_stream
 from viotb.vio.health import HealthMonitor
 from viotb.vio.lie import log_so3
-from viotb.vio.metrics import align_umeyama
+from viotb.vio.metrics import align_umeyama, positions_at
 from viotb.vio.window import WindowEstimator, WindowParams
 
 
@@ -30,7 +30,7 @@ def _run(stream, params: WindowParams):
     t = np.array([e.t_s for e in ok])
     p = np.array([e.p_WB for e in ok])
     gt = stream.truth
-    p_gt = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
+    p_gt = positions_at(gt, t)
     al = align_umeyama(p, p_gt, "posyaw")
     ate = float(np.sqrt(np.mean(np.linalg.norm(al.apply(p) - p_gt, axis=1) ** 2)))
     assert not any(h.diverged for h in run.health)

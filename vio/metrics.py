@@ -164,6 +164,15 @@ def ground_truth_gaps(t_ref_s: np.ndarray, max_gap_s: float | None = None) -> np
     return np.flatnonzero(dt > limit)
 
 
+def positions_at(traj: TrajectoryArrays, t_s: np.ndarray) -> np.ndarray:
+    """Positions (m, world frame) of ``traj`` linearly interpolated at ``t_s`` (s, shape (N,)): shape (N, 3).
+
+    ``np.interp`` per axis: no gap or span check (:func:`interpolate_trajectory` has them); query times
+    outside the span take the end positions.
+    """
+    return np.column_stack([np.interp(t_s, traj.t_s, traj.p_WB[:, k]) for k in range(3)])
+
+
 def interpolate_trajectory(
     traj: TrajectoryArrays, t_s: np.ndarray, max_gap_s: float | None = None
 ) -> tuple[TrajectoryArrays, np.ndarray]:
@@ -187,7 +196,7 @@ def interpolate_trajectory(
     for i in ground_truth_gaps(t_ref, max_gap_s):
         inside &= ~((t_q > t_ref[i]) & (t_q < t_ref[i + 1]))
     tq = t_q[inside]
-    p = np.column_stack([np.interp(tq, t_ref, traj.p_WB[:, k]) for k in range(3)])
+    p = positions_at(traj, tq)
     rots = Rotation.from_quat(np.roll(np.asarray(traj.quat_wxyz_WB, dtype=float), -1, axis=1))
     quat_xyzw = Slerp(t_ref, rots)(tq).as_quat() if tq.size else np.zeros((0, 4))
     v = None

@@ -10,7 +10,7 @@ from viotb.envs.run.replay import MonitoredRun, monitor_run
 from viotb.envs.scenarios.streams import Stream, StreamConfig, synthesize_stream
 from viotb.vio.health import HealthMonitor, HealthParams
 from viotb.vio.lie import rotmat_to_quat_wxyz
-from viotb.vio.metrics import align_umeyama, evaluate_trajectory, scale_error_pct
+from viotb.vio.metrics import align_umeyama, evaluate_trajectory, positions_at, scale_error_pct
 from viotb.vio.msckf import MsckfEstimator, MsckfParams
 from viotb.vio.types import CameraFrame, ImuSeries, TrajectoryArrays
 from viotb.vio.window import WindowEstimator, WindowParams
@@ -75,7 +75,7 @@ def run_stream(
         t = np.array([run.estimates[i].t_s for i in ok])
         p_est = np.array([run.estimates[i].p_WB for i in ok])
         gt = stream.truth
-        p_gt = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
+        p_gt = positions_at(gt, t)
         al = align_umeyama(p_est, p_gt, "posyaw")
         err = np.linalg.norm(al.apply(p_est) - p_gt, axis=1)
         out.t_s, out.err_m = t, err
@@ -166,7 +166,7 @@ def anchored_position_error_m(result: RunResult) -> tuple[np.ndarray, np.ndarray
     gt = result.stream.truth
     t = np.array([e.t_s for e in ests])
     p = np.array([e.p_WB for e in ests])
-    g = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
+    g = positions_at(gt, t)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(g, axis=0), axis=1))])
     return s, np.linalg.norm((p - p[0]) - (g - g[0]), axis=1)
 

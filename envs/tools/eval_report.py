@@ -24,7 +24,7 @@ from viotb.envs.data.diagnosis import EvalTrace, condition_intervals
 from viotb.envs.data.euroc import EurocDataset, load_image
 from viotb.envs.tools.jsonout import plain_json
 from viotb.vio.health import HealthParams
-from viotb.vio.metrics import align_umeyama
+from viotb.vio.metrics import align_umeyama, positions_at
 
 _COLORS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan", "tab:gray", "gold")
 
@@ -43,7 +43,7 @@ def trace_errors(trace: EvalTrace, ds: EurocDataset) -> tuple[np.ndarray, np.nda
     if np.count_nonzero(keep) < 2:
         return None
     t = trace.est_t_s[keep]
-    p_gt = np.stack([np.interp(t, gt.t_s, gt.p_WB[:, j]) for j in range(3)], axis=1)
+    p_gt = positions_at(gt, t)
     q = gt.quat_wxyz_WB
     R_gt = Slerp(gt.t_s, Rotation.from_quat(q[:, [1, 2, 3, 0]]))(t).as_matrix()
     al = align_umeyama(trace.p_WB[keep], p_gt, "posyaw")
