@@ -13,6 +13,7 @@ import pytest
 HEAVY = (
     "mujoco",
     "scipy",
+    "numba",
     "cv2",
     "matplotlib",
     "viotb.vio.msckf",
