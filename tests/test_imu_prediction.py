@@ -50,7 +50,9 @@ class _EagerReference:
                 _, t0, vals0, phi0, q0, _ = c
             else:
                 t0, vals0, phi0, q0 = st.t_s, st.imu, np.eye(15), np.zeros((15, 15))
+            compiled, est.propagator.compiled = est.propagator.compiled, False  # the numpy reference
             vals, phi, q = est.propagator.predict(vals0, t0, t_new)
+            est.propagator.compiled = compiled
             phi_tot, q_tot = phi @ phi0, phi @ q0 @ phi.T + q
             t_out = max(t_new, t0)
             sl = st.block(IMU_BLOCK).indices
@@ -59,8 +61,11 @@ class _EagerReference:
         return t_out, vals.R_WB, vals.p_WB, 0.5 * (cov + cov.T)
 
 
-def _fly_filter(read_every: int, seed: int = 0):
+def _fly_filter(read_every: int, seed: int = 0, compiled: bool = False):
     """A synthetic flight at 200 Hz IMU / 20 Hz camera with estimates at 250 Hz-like uneven ticks.
+
+    The filter predicts with the compiled kernels or (``compiled`` False) the numpy functions the
+    reference calls.
 
     Returns per call ``(lazy estimate, reference tuple, read now)``; covariances of the calls with
     ``read now`` are read at once, the rest only at the end (after later frames changed the filter).
@@ -68,6 +73,7 @@ def _fly_filter(read_every: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     world = SyntheticWorld(np.random.default_rng(100 + seed))
     est = MsckfEstimator(world.calib, ImuNoise(), MsckfParams(frontend="sim"))
+    est.propagator.compiled = compiled
     est.initialize(_truth_init(world))
     ref = _EagerReference()
     out, calls = [], 0
@@ -100,6 +106,17 @@ def test_lazy_prediction_equals_the_eager_one(read_every):
     if read_every == 1:  # read at every tick: the eager prediction's own operations
         for e, (_, _, _, cov_ref), _ in rows:
             np.testing.assert_array_equal(e.cov, cov_ref)
+
+
+@pytest.mark.parametrize("read_every", [1, 7])
+def test_compiled_lazy_prediction_equals_the_numpy_eager_one(read_every):
+    """The kernels' mean and covariance against the numpy eager prediction, through a filter's updates."""
+    rows = _fly_filter(read_every, seed=1, compiled=True)
+    for e, (t_ref, R_ref, p_ref, cov_ref), _ in rows:
+        assert e.t_s == t_ref
+        _assert_rel(e.R_WB, R_ref)
+        _assert_rel(e.p_WB, p_ref)
+        _assert_rel(e.cov, cov_ref)
 
 
 @pytest.mark.parametrize("method", [Integration.DISCRETE, Integration.RK4])

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 from viotb.vio.imu_intrinsics import ImuIntrinsics
+from viotb.vio.imu_kernels_calls import chain_links, step_links
 from viotb.vio.propagator import (
     Propagator,
     StepMean,
@@ -112,6 +113,14 @@ class PredictionChain:
         if not pending:
             return
         steps = [link for link in pending if isinstance(link, StepMean)]
+        if self._totals:
+            phi_tot, q_tot = self._totals[-1]
+        else:
+            d = self._P.shape[0]
+            phi_tot, q_tot = np.eye(d), np.zeros((d, d))
+        if self._propagator.compiled and self._intr is None:
+            self._build_totals_compiled(pending, steps, phi_tot, q_tot)
+            return
         noise = self._propagator.noise
         built: list[tuple[np.ndarray, np.ndarray]] = []
         if len(steps) == 1 and self._intr is None:  # the per-tick read: the eager prediction's functions
@@ -121,11 +130,6 @@ class PredictionChain:
             phis = step_transitions(steps, self._intr)
             qs = discrete_noise_batch(phis, noise, np.array([s.dt for s in steps]))
             built = list(zip(phis, qs, strict=True))
-        if self._totals:
-            phi_tot, q_tot = self._totals[-1]
-        else:
-            d = self._P.shape[0]
-            phi_tot, q_tot = np.eye(d), np.zeros((d, d))
         k = 0
         for link in pending:
             if isinstance(link, StepMean):
@@ -135,6 +139,28 @@ class PredictionChain:
                 phi, q = link
             phi_tot, q_tot = phi @ phi_tot, phi @ q_tot @ phi.T + q
             self._totals.append((phi_tot, q_tot))
+
+    def _build_totals_compiled(
+        self,
+        pending: list[StepMean | tuple[np.ndarray, np.ndarray]],
+        steps: list[StepMean],
+        phi_tot: np.ndarray,
+        q_tot: np.ndarray,
+    ) -> None:
+        """:meth:`_build_totals` by the kernels: the steps' ``Phi``, ``Q`` and the running totals (15, 15)."""
+        if len(steps) == len(pending):
+            phis, qs = step_links(steps, self._propagator.noise)
+        else:
+            phis, qs = np.empty((len(pending), IMU_DIM, IMU_DIM)), np.empty((len(pending), IMU_DIM, IMU_DIM))
+            if steps:
+                built = step_links(steps, self._propagator.noise)
+                mask = [isinstance(link, StepMean) for link in pending]
+                phis[mask], qs[mask] = built
+            for i, link in enumerate(pending):
+                if not isinstance(link, StepMean):
+                    phis[i], qs[i] = link
+        phi_tots, q_tots = chain_links(phis, qs, phi_tot, q_tot)
+        self._totals.extend(zip(phi_tots, q_tots, strict=True))
 
 
 class LazyCovarianceEstimate(StateEstimate):

@@ -49,6 +49,7 @@ from viotb.vio.imu_integration import (
     transition_batch,
 )
 from viotb.vio.imu_intrinsics import ImuIntrinsics, correct_readings
+from viotb.vio.imu_kernels_calls import mean_record, propagate_span_values
 from viotb.vio.state import (
     IMU_DIM,
     ImuValues,
@@ -197,6 +198,7 @@ def propagate_values(
     noise: ImuNoise,
     imu_fej: ImuValues | None = None,
     intrinsics: ImuIntrinsics | None = None,
+    compiled: bool = True,
 ) -> tuple[ImuValues, np.ndarray, np.ndarray]:
     """Integrate selected readings (from :func:`select_imu_readings`) and accumulate ``Phi`` and ``Q``.
 
@@ -217,6 +219,9 @@ def propagate_values(
         imu_fej: First estimates at ``t_s[0]`` (None: plain Jacobians).
         intrinsics: Online IMU intrinsics (:mod:`viotb.vio.imu_intrinsics`): the readings are corrected
             with them and ``Phi``, ``Q`` cover ``[imu, intrinsic blocks]``; None: neither.
+        compiled: Without intrinsics, compute all of it in the compiled kernel
+            (:func:`~viotb.vio.imu_kernels_calls.propagate_span_values`, equal to the numpy path to 1e-9
+            relative); False: the numpy functions above.
 
     Returns:
         ``(state at t_s[-1], Phi (d, d), Q (d, d))`` over the whole span, ``d = 15 + intrinsics.dim``.
@@ -227,6 +232,8 @@ def propagate_values(
     d = IMU_DIM + (0 if intrinsics is None else intrinsics.dim)
     if k.size == 0:
         return imu.copy(), np.eye(d), np.zeros((d, d))
+    if compiled and intrinsics is None:
+        return propagate_span_values(imu, w[k], w[k + 1], a[k], a[k + 1], dt[k], method, noise, imu_fej)
     if k.size == 1 and intrinsics is None:
         # One interval (the per-control-tick prediction): the scalar step has less array overhead (1.7x).
         j, dt_j = int(k[0]), float(dt[k[0]])
@@ -275,6 +282,8 @@ class Propagator:
         method: Integration method.
         use_fej: Evaluate the transition matrix at first estimates.
         keep_history_s: Readings older than the state time minus this are dropped (s).
+        compiled: Propagate and predict with the compiled kernels (:mod:`viotb.vio.imu_kernels`; online
+            intrinsics keep the numpy path); False: the numpy reference functions.
     """
 
     def __init__(
@@ -283,8 +292,10 @@ class Propagator:
         method: Integration = Integration.RK4,
         use_fej: bool = True,
         keep_history_s: float = 2.0,
+        compiled: bool = True,
     ) -> None:
         """Create an empty propagator."""
+        self.compiled = compiled
         self.noise = noise
         self.method = Integration(method)
         self.use_fej = use_fej
@@ -317,7 +328,9 @@ class Propagator:
             return
         t, g, a = self.readings(state.t_s, t_s)
         fej = state.imu_fej if self.use_fej else None
-        new, phi, q = propagate_values(state.imu, t, g, a, self.method, self.noise, fej, state.intrinsics)
+        new, phi, q = propagate_values(
+            state.imu, t, g, a, self.method, self.noise, fej, state.intrinsics, self.compiled
+        )
         state.imu = new
         state.t_s = float(t_s)
         ekf_propagate(state, phi, q)
@@ -337,7 +350,7 @@ class Propagator:
         if t_s <= start_t_s or len(self.buffer) == 0:
             return start_imu.copy(), np.eye(d), np.zeros((d, d))
         t, g, a = select_imu_readings(*self.buffer.arrays(), start_t_s, t_s)
-        return propagate_values(start_imu, t, g, a, self.method, self.noise, None, intrinsics)
+        return propagate_values(start_imu, t, g, a, self.method, self.noise, None, intrinsics, self.compiled)
 
     def predict_mean(
         self, start_imu: ImuValues, start_t_s: float, t_s: float, intrinsics: ImuIntrinsics | None = None
@@ -363,7 +376,9 @@ class Propagator:
         t, g, a = select_imu_readings(t, g, a, start_t_s, t_s)
         k = np.flatnonzero(np.diff(t) > 0.0)
         if k.size != 1:
-            vals, phi, q = propagate_values(start_imu, t, g, a, self.method, self.noise, None, intrinsics)
+            vals, phi, q = propagate_values(
+                start_imu, t, g, a, self.method, self.noise, None, intrinsics, self.compiled
+            )
             return vals, (phi, q)
         step = self._interval_mean(start_imu, t, g, a, int(k[0]), intrinsics)
         return step.new, step
@@ -384,7 +399,8 @@ class Propagator:
         if intrinsics is not None:
             raw = np.vstack([g[j : j + 2] - b_g, a[j : j + 2] - b_a])
         dt = float(t[j + 1] - t[j])
-        return integrate_mean(start_imu, w[0], w[1], f[0], f[1], dt, self.method, raw)
+        integrate = mean_record if self.compiled else integrate_mean
+        return integrate(start_imu, w[0], w[1], f[0], f[1], dt, self.method, raw)
 
     def propagate_and_clone(self, state: State, t_cam_s: float) -> None:
         """Propagate to the IMU time ``t_cam_s + time_offset`` and clone the pose keyed by ``t_cam_s``."""

@@ -1,0 +1,157 @@
+"""The compiled propagation (:mod:`viotb.vio.imu_kernels`) behind the records the estimator passes around.
+
+Each function here returns what its numpy reference in :mod:`viotb.vio.imu_integration` returns, computed by
+the kernels: :func:`mean_record` is ``integrate_mean``, :func:`step_links` is ``step_transitions`` with
+``discrete_noise_batch``, :func:`propagate_span_values` is ``propagate_values`` without online intrinsics,
+:func:`chain_links` the prediction chain's running totals. Equal to the references to 1e-9 relative
+(``tests/test_imu_kernels.py``); the last bits differ where a 3 x 3 or 15 x 15 product is summed in another
+order than numpy's BLAS sums it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from viotb.vio import imu_kernels as kernels
+from viotb.vio.imu_integration import Integration, StepMean
+from viotb.vio.state import ImuValues
+from viotb.vio.types import ImuNoise, gravity_W
+
+
+def noise_vector(noise: ImuNoise) -> np.ndarray:
+    """The four densities the kernels take, shape (4,).
+
+    In ``ImuNoise`` order: gyro white (rad/s/sqrt(Hz)), gyro walk (rad/s^2/sqrt(Hz)), accel white
+    (m/s^2/sqrt(Hz)), accel walk (m/s^3/sqrt(Hz)).
+    """
+    return np.array(
+        [
+            noise.gyro_noise_density_rad_s_sqrthz,
+            noise.gyro_random_walk_rad_s2_sqrthz,
+            noise.accel_noise_density_m_s2_sqrthz,
+            noise.accel_random_walk_m_s3_sqrthz,
+        ]
+    )
+
+
+def mean_record(
+    imu: ImuValues,
+    w0: np.ndarray,
+    w1: np.ndarray,
+    a0: np.ndarray,
+    a1: np.ndarray,
+    dt: float,
+    method: Integration,
+    raw: np.ndarray | None = None,
+) -> StepMean:
+    """:func:`~viotb.vio.imu_integration.integrate_mean` by :func:`~viotb.vio.imu_kernels.mean_step`.
+
+    Args:
+        imu: State at the start of the interval (biases are held).
+        w0: Corrected angular rates (rad/s) in B at the start and end, shape (3,).
+        w1: See ``w0``.
+        a0: Corrected specific forces (m/s^2) in B at the start and end, shape (3,).
+        a1: See ``a0``.
+        dt: Interval length (s), > 0.
+        method: Integration method.
+        raw: Kept in the record for the intrinsic columns; None without them.
+    """
+    rk4 = method == Integration.RK4
+    R1, p1, v1, theta, theta_m, Rm, am = kernels.mean_step(
+        imu.R_WB, imu.p_WB, imu.v_WB, w0, w1, a0, a1, float(dt), rk4, gravity_W()
+    )
+    new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
+    if not rk4:
+        return StepMean(imu, new, method, dt, theta, R1, None, None, None, None, raw)
+    return StepMean(imu, new, method, dt, theta, R1, theta_m, Rm, am, a1, raw)
+
+
+def step_links(steps: list[StepMean], noise: ImuNoise) -> tuple[np.ndarray, np.ndarray]:
+    """Plain-Jacobian ``(Phi, Q)`` of recorded intervals of one method (no intrinsics), (m, 15, 15) each.
+
+    :func:`~viotb.vio.imu_integration.step_transitions` and ``discrete_noise_batch`` by
+    :func:`~viotb.vio.imu_kernels.step_phis_qs`.
+    """
+    rk4 = steps[0].method == Integration.RK4
+    starts = [s.start for s in steps]
+    news = [s.new for s in steps]
+    if rk4:
+        extra = (
+            np.array([s.Rm for s in steps]),
+            np.array([s.am for s in steps]),
+            np.array([s.a1 for s in steps]),
+            np.array([s.theta_m for s in steps]),
+        )
+    else:
+        zeros = np.zeros((len(steps), 3))
+        extra = (np.zeros((len(steps), 3, 3)), zeros, zeros, zeros)
+    return kernels.step_phis_qs(
+        np.array([s.dt for s in steps], dtype=float),
+        np.array([x.R_WB for x in starts]),
+        np.array([x.v_WB for x in starts]),
+        np.array([x.p_WB for x in starts]),
+        np.array([x.R_WB for x in news]),
+        np.array([x.v_WB for x in news]),
+        np.array([x.p_WB for x in news]),
+        np.array([s.theta for s in steps]),
+        rk4,
+        *extra,
+        gravity_W(),
+        noise_vector(noise),
+    )
+
+
+def chain_links(
+    phis: np.ndarray, qs: np.ndarray, phi0: np.ndarray, q0: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Running totals of a chain (:func:`~viotb.vio.imu_kernels.chain_totals`); shapes (m, d, d)."""
+    return kernels.chain_totals(
+        np.ascontiguousarray(phis, dtype=float),
+        np.ascontiguousarray(qs, dtype=float),
+        np.ascontiguousarray(phi0, dtype=float),
+        np.ascontiguousarray(q0, dtype=float),
+    )
+
+
+def propagate_span_values(
+    imu: ImuValues,
+    w0: np.ndarray,
+    w1: np.ndarray,
+    a0: np.ndarray,
+    a1: np.ndarray,
+    dt: np.ndarray,
+    method: Integration,
+    noise: ImuNoise,
+    imu_fej: ImuValues | None = None,
+) -> tuple[ImuValues, np.ndarray, np.ndarray]:
+    """A span's ``(state at the end, Phi (15, 15), Q (15, 15))``, as ``propagate_values`` (no intrinsics).
+
+    Args:
+        imu: State at the start of the first interval (biases are held).
+        w0: Corrected rates (rad/s) at the interval starts, shape (m, 3); ``w1`` at the ends.
+        w1: See ``w0``.
+        a0: Corrected specific forces (m/s^2) at the starts, shape (m, 3); ``a1`` at the ends.
+        a1: See ``a0``.
+        dt: Interval lengths (s), shape (m,), all > 0.
+        method: Integration method.
+        noise: IMU noise densities.
+        imu_fej: First estimates at the start (None: ``imu``).
+    """
+    fej = imu if imu_fej is None else imu_fej
+    R1, p1, v1, phi, q = kernels.propagate_span(
+        imu.R_WB,
+        imu.p_WB,
+        imu.v_WB,
+        np.ascontiguousarray(w0, dtype=float),
+        np.ascontiguousarray(w1, dtype=float),
+        np.ascontiguousarray(a0, dtype=float),
+        np.ascontiguousarray(a1, dtype=float),
+        np.ascontiguousarray(dt, dtype=float),
+        fej.R_WB,
+        fej.p_WB,
+        fej.v_WB,
+        method == Integration.RK4,
+        gravity_W(),
+        noise_vector(noise),
+    )
+    new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
+    return new, phi, q
