@@ -57,7 +57,8 @@ def _assert_rel(actual: np.ndarray, desired: np.ndarray, rel: float = 1e-9) -> N
 @pytest.mark.parametrize("method", [Integration.DISCRETE, Integration.RK4])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("with_fej", [False, True])
-def test_batched_propagation_equals_per_sample(method, seed, with_fej):
+@pytest.mark.parametrize("compiled", [False, True])
+def test_batched_propagation_equals_per_sample(method, seed, with_fej, compiled):
     rng = np.random.default_rng(seed)
     x0 = _random_imu(rng)
     fej = _random_imu(rng) if with_fej else None
@@ -66,7 +67,7 @@ def test_batched_propagation_equals_per_sample(method, seed, with_fej):
     A = rng.normal(size=(15, 15))
     P0 = A @ A.T * 1e-2 + np.eye(15) * 1e-4
     ref, P_ref = _per_sample(x0, t, gyro, accel, method, noise, fej, P0)
-    new, phi, q = propagate_values(x0, t, gyro, accel, method, noise, fej)
+    new, phi, q = propagate_values(x0, t, gyro, accel, method, noise, fej, None, compiled)
     _assert_rel(new.R_WB, ref.R_WB)
     assert np.linalg.norm(log_so3(ref.R_WB.T @ new.R_WB)) < 1e-12
     _assert_rel(new.p_WB, ref.p_WB)

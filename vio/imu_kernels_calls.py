@@ -61,7 +61,7 @@ def mean_record(
     )
     new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
     if not rk4:
-        return StepMean(imu, new, method, dt, theta, R1, None, None, None, None, raw)
+        return StepMean(imu, new, method, dt, theta, R1, None, None, None, a1, raw)
     return StepMean(imu, new, method, dt, theta, R1, theta_m, Rm, am, a1, raw)
 
 
@@ -155,3 +155,21 @@ def propagate_span_values(
     )
     new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
     return new, phi, q
+
+
+def warm_up() -> None:
+    """Load (or, on a machine's first run, compile) every kernel with the argument types the filter uses.
+
+    Numba loads a cached kernel on its first call in a process (about 0.7 s for the first, tens of ms
+    for each further one); the propagator calls this when it is built, so that the cost does not land in
+    the first control ticks of a timed flight. Costs tens of microseconds once loaded.
+    """
+    imu = ImuValues(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
+    w = np.array([[0.1, 0.2, 0.3], [0.2, 0.1, 0.0]])
+    a = np.array([[0.0, 0.1, 9.8], [0.1, 0.0, 9.8]])
+    noise = ImuNoise()
+    for method in (Integration.RK4, Integration.DISCRETE):
+        step = mean_record(imu, w[0], w[1], a[0], a[1], 0.005, method)
+        phis, qs = step_links([step], noise)
+        chain_links(phis, qs, np.eye(phis.shape[1]), np.zeros(phis.shape[1:]))
+        propagate_span_values(imu, w[:1], w[1:], a[:1], a[1:], np.array([0.005]), method, noise)

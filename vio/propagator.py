@@ -49,7 +49,7 @@ from viotb.vio.imu_integration import (
     transition_batch,
 )
 from viotb.vio.imu_intrinsics import ImuIntrinsics, correct_readings
-from viotb.vio.imu_kernels_calls import mean_record, propagate_span_values
+from viotb.vio.imu_kernels_calls import mean_record, propagate_span_values, warm_up
 from viotb.vio.state import (
     IMU_DIM,
     ImuValues,
@@ -296,6 +296,8 @@ class Propagator:
     ) -> None:
         """Create an empty propagator."""
         self.compiled = compiled
+        if compiled:
+            warm_up()
         self.noise = noise
         self.method = Integration(method)
         self.use_fej = use_fej
