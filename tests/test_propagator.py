@@ -150,3 +150,32 @@ def test_propagate_and_clone_keeps_covariance_psd_and_time_offset_jacobian():
     # cross-covariance / var(td) = Jacobian of the clone w.r.t. td at cloning time (time offset is static)
     jac = st.cov[blk.indices, td] / st.cov[td, td]
     np.testing.assert_allclose(jac, num, rtol=1e-3, atol=1e-6)
+
+
+def test_imu_sample_validation_fast_path_agrees_with_the_checks():
+    """The plain-float pass of valid samples accepts exactly what the array checks accept."""
+    from viotb.vio.propagator import validate_imu_sample
+
+    def checks(sample, last):  # the array checks alone (a list is never on the fast path)
+        validate_imu_sample(ImuSample(sample.t_s, list(sample.gyro_B_rad_s), list(sample.accel_B_m_s2)), last)
+
+    big = np.finfo(float).max
+    cases = [
+        (0.1, np.zeros(3), np.array([0.0, 0.0, 9.81]), None),
+        (0.1, np.zeros(3), np.array([0.0, 0.0, 9.81]), 0.1),  # not after the last
+        (0.1, np.array([big, big, 0.0]), np.zeros(3), 0.0),  # finite, but the sum overflows
+        (0.1, np.array([np.inf, 0.0, 0.0]), np.zeros(3), 0.0),
+        (0.1, np.zeros(3), np.array([0.0, np.nan, 0.0]), 0.0),
+        (np.inf, np.zeros(3), np.zeros(3), None),
+        (0.2, np.arange(3), np.ones(3, dtype=np.float32), 0.1),
+    ]
+    for t, g, a, last in cases:
+        sample = ImuSample(t, g, a)
+        outcomes = []
+        for fn in (validate_imu_sample, checks):
+            try:
+                fn(sample, last)
+                outcomes.append(None)
+            except ValueError as exc:
+                outcomes.append(str(exc))
+        assert outcomes[0] == outcomes[1], (t, g, a, last)
