@@ -143,6 +143,12 @@ PROFILE_POINTS = (
     ("estimator: per-tick estimate()", "viotb.vio.msckf", "MsckfEstimator", "estimate"),
     ("estimator: feed_imu", "viotb.vio.msckf", "MsckfEstimator", "feed_imu"),
     ("log covariances (resolve_deferred)", "viotb.envs.run.flight_log", "FlightLog", "resolve_deferred"),
+    ("physics (step_checked)", "viotb.envs.sim.simulation", "Simulation", "step_checked"),
+    ("IMU model (measure)", "viotb.envs.sim.imu_model", "ImuModel", "measure"),
+    ("control (SE(3) + mixer)", "viotb.controllers.se3", "SE3Controller", "_thrusts_f"),
+    ("mission (TakeoffSequence.update)", "viotb.envs.run.mission", "TakeoffSequence", "update"),
+    ("health monitor: observe_imu", "viotb.vio.health", "HealthMonitor", "observe_imu"),
+    ("health monitor: observe_frame", "viotb.vio.health", "HealthMonitor", "observe_frame"),
 )
 """(component, module, class, method) wrapped with a thread-time accumulator in :func:`fly_pairs`."""
 

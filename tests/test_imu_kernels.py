@@ -19,7 +19,7 @@ from viotb.vio.imu_integration import (
     step_transition,
     step_transitions,
 )
-from viotb.vio.imu_kernels_calls import chain_links, mean_record, noise_vector, step_links
+from viotb.vio.imu_kernels_calls import chain_links, mean_record, noise_vector, step_chain_totals, step_links
 from viotb.vio.lie import exp_so3, right_jacobian_so3
 from viotb.vio.propagator import Propagator, propagate_values
 from viotb.vio.types import ImuNoise, ImuSample
@@ -90,6 +90,18 @@ def test_step_links_equal_the_numpy_transitions_and_noises(method):
         phi = step_transition(step)
         _assert_rel(phis[k], phi)
         _assert_rel(qs[k], discrete_noise(phi, noise, step.dt))
+    # The kernel's own records (the compiled prediction's steps), and the links chained in the same call.
+    compiled = [
+        mean_record(s.start, gyro[k], gyro[k + 1], accel[k], accel[k + 1], s.dt, method)
+        for k, s in enumerate(steps)
+    ]
+    phis_c, qs_c = step_links(compiled, noise)
+    _assert_rel(phis_c, phis)
+    _assert_rel(qs_c, qs)
+    phi0, q0 = np.eye(15), np.diag(rng.uniform(0.1, 1.0, 15))
+    tots = step_chain_totals(compiled, noise, phi0, q0)
+    for got, want in zip(tots, chain_links(phis, qs, phi0, q0), strict=True):
+        _assert_rel(got, want)
 
 
 @pytest.mark.parametrize("d", [15, 21])

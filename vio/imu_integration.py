@@ -55,6 +55,8 @@ class StepMean(NamedTuple):
         a1: RK4: bias-corrected specific force at the end (m/s^2), shape (3,); None for DISCRETE.
         raw: With online IMU intrinsics: the bias-removed raw readings ``[w_m0, w_m1, a_m0, a_m1] - b``
             the corrected ones came from, shape (4, 3) (:func:`intrinsic_columns`); else None.
+        packed: From the compiled path (:func:`viotb.vio.imu_kernels_calls.mean_record`): the kernel's
+            record that the arrays above are views of (:data:`viotb.vio.imu_kernels.RECORD_ROWS`); else None.
     """
 
     start: ImuValues
@@ -68,6 +70,7 @@ class StepMean(NamedTuple):
     am: np.ndarray | None
     a1: np.ndarray | None
     raw: np.ndarray | None = None
+    packed: np.ndarray | None = None
 
 
 def integrate_mean(

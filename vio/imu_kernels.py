@@ -9,9 +9,12 @@ so the result is the dense product's, at a third of the work.
 
 Entry points (all arrays float64, frames and units as in :mod:`viotb.vio.imu_integration`):
 
-- :func:`mean_step`: one interval's nominal state (:func:`~viotb.vio.imu_integration.integrate_mean`);
+- :func:`mean_step`: one interval's nominal state (:func:`~viotb.vio.imu_integration.integrate_mean`), as
+  one record (:data:`RECORD_ROWS`): each kernel hands back few arrays, since numba boxes every returned
+  array at a cost of about half a microsecond;
 - :func:`step_phis_qs`: stacked transitions and noises of recorded intervals
-  (:func:`~viotb.vio.imu_integration.step_transitions` and ``discrete_noise_batch``);
+  (:func:`~viotb.vio.imu_integration.step_transitions` and ``discrete_noise_batch``), and
+  :func:`step_chain` the same followed by their chain;
 - :func:`propagate_span`: a span's mean, ``Phi`` and ``Q`` (``propagate_values`` without intrinsics);
 - :func:`chain_totals`: the running products ``Phi_k ... Phi_0`` and noises of a prediction chain.
 """
@@ -81,7 +84,7 @@ def _skew_mm3(A: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 @njit
-def mean_step(
+def _mean(
     R0: np.ndarray,
     p0: np.ndarray,
     v0: np.ndarray,
@@ -93,7 +96,7 @@ def mean_step(
     rk4: bool,
     g: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One interval's nominal state, as :func:`~viotb.vio.imu_integration.integrate_mean`.
+    """One interval's nominal state, as :func:`~viotb.vio.imu_integration.integrate_mean` (unpacked).
 
     Args:
         R0: Start orientation ``R_WB``, shape (3, 3); ``p0`` (m), ``v0`` (m/s) position and velocity in W.
@@ -141,6 +144,45 @@ def mean_step(
         v1[i] = v0[i] + (dt / 6.0) * ((s0 + 4.0 * sm) + s1)
         p1[i] = (p0[i] + v0[i] * dt) + ((dt * dt) / 6.0) * (s0 + 2.0 * sm)
     return R1, p1, v1, theta, theta_m, Rm, am
+
+
+RECORD_ROWS = 17
+"""Rows of a :func:`mean_step` record (each a 3-vector): ``R1`` 0-2, ``p1`` 3, ``v1`` 4, ``theta`` 5,
+``theta_m`` 6, ``Rm`` 7-9, ``am`` 10, the start ``R0`` 11-13, ``p0`` 14, ``v0`` 15, and ``a1`` 16."""
+
+
+@njit
+def mean_step(
+    R0: np.ndarray,
+    p0: np.ndarray,
+    v0: np.ndarray,
+    w0: np.ndarray,
+    w1: np.ndarray,
+    a0: np.ndarray,
+    a1: np.ndarray,
+    dt: float,
+    rk4: bool,
+    g: np.ndarray,
+) -> np.ndarray:
+    """:func:`_mean` packed into one record, shape (RECORD_ROWS, 3) (one array to hand back to Python).
+
+    The arguments are :func:`_mean`'s; the record also keeps the start state and ``a1``, which the
+    interval's transition needs (:func:`step_phis_qs` takes stacked records).
+    """
+    R1, p1, v1, theta, theta_m, Rm, am = _mean(R0, p0, v0, w0, w1, a0, a1, dt, rk4, g)
+    rec = np.empty((RECORD_ROWS, 3))
+    rec[0:3] = R1
+    rec[3] = p1
+    rec[4] = v1
+    rec[5] = theta
+    rec[6] = theta_m
+    rec[7:10] = Rm
+    rec[10] = am
+    rec[11:14] = R0
+    rec[14] = p0
+    rec[15] = v0
+    rec[16] = a1
+    return rec
 
 
 @njit
@@ -265,80 +307,67 @@ def chain_totals(
         q0: See ``phi0``.
 
     Returns:
-        ``(phi_tots, q_tots)``, shape (m, d, d) each: after link k, ``phi_tots[k] = phis[k] @ phi_tots[k-1]``
+        ``[phi_tots, q_tots]``, shape (2, m, d, d): after link k, ``phi_tots[k] = phis[k] @ phi_tots[k-1]``
         and ``q_tots[k] = phis[k] @ q_tots[k-1] @ phis[k].T + qs[k]``.
     """
     m, d = phis.shape[0], phis.shape[1]
-    phi_tots, q_tots = np.empty((m, d, d)), np.empty((m, d, d))
+    out = np.empty((2, m, d, d))
     phi_tot, q_tot = phi0, q0
     for k in range(m):
         phi_tot, q_tot = _link(phis[k], qs[k], phi_tot, q_tot)
-        phi_tots[k] = phi_tot
-        q_tots[k] = q_tot
-    return phi_tots, q_tots
+        out[0, k] = phi_tot
+        out[1, k] = q_tot
+    return out
 
 
 @njit
 def step_phis_qs(
-    dt: np.ndarray,
-    R0: np.ndarray,
-    v0: np.ndarray,
-    p0: np.ndarray,
-    R1: np.ndarray,
-    v1: np.ndarray,
-    p1: np.ndarray,
-    theta: np.ndarray,
-    rk4: bool,
-    Rm: np.ndarray,
-    am: np.ndarray,
-    a1: np.ndarray,
-    theta_m: np.ndarray,
-    g: np.ndarray,
-    noise: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Plain-Jacobian transitions and noises of m recorded intervals, shape (m, 15, 15) each.
+    records: np.ndarray, dt: np.ndarray, rk4: bool, g: np.ndarray, noise: np.ndarray
+) -> np.ndarray:
+    """Plain-Jacobian transitions and noises of m recorded intervals: ``[phis, qs]``, shape (2, m, 15, 15).
 
     Args:
+        records: The intervals' :func:`mean_step` records, shape (m, RECORD_ROWS, 3).
         dt: Interval lengths (s), shape (m,).
-        R0: Start states: orientations (m, 3, 3), velocities (m/s) and positions (m) in W (m, 3).
-        v0: See ``R0``.
-        p0: See ``R0``.
-        R1: End states, the same shapes.
-        v1: See ``R1``.
-        p1: See ``R1``.
-        theta: Rotation vectors of the intervals (rad), (m, 3).
-        rk4: RK4 (else DISCRETE, and the next four are not read).
-        Rm: Mid-interval orientations (m, 3, 3), mean specific forces (m, 3), end forces (m, 3),
-            mid-interval rotation vectors (m, 3).
-        am: See ``Rm``.
-        a1: See ``Rm``.
-        theta_m: See ``Rm``.
+        rk4: RK4 (else DISCRETE: the records' mid-interval rows are not read).
         g: Gravity in W (m/s^2), shape (3,).
         noise: The four densities in ``ImuNoise`` order, shape (4,).
     """
     m = dt.shape[0]
-    phis, qs = np.zeros((m, IMU_DIM, IMU_DIM)), np.zeros((m, IMU_DIM, IMU_DIM))
+    out = np.zeros((2, m, IMU_DIM, IMU_DIM))
     for k in range(m):
+        r = records[k]
+        R0, p0, v0 = r[11:14], r[14], r[15]  # the plain Jacobian: the first estimates are the start values
         _fill_phi(
-            phis[k],
-            dt[k],
-            R0[k],
-            R1[k],
-            theta[k],
-            v1[k],
-            p1[k],
-            R0[k],  # the plain Jacobian: the first estimates are the start values
-            v0[k],
-            p0[k],
-            rk4,
-            Rm[k],
-            am[k],
-            a1[k],
-            theta_m[k],
-            g,
+            out[0, k], dt[k], R0, r[0:3], r[5], r[4], r[3], R0, v0, p0, rk4, r[7:10], r[10], r[16], r[6], g
         )
-        _fill_q(qs[k], phis[k], dt[k], noise)
-    return phis, qs
+        _fill_q(out[1, k], out[0, k], dt[k], noise)
+    return out
+
+
+@njit
+def step_chain(
+    records: np.ndarray,
+    dt: np.ndarray,
+    rk4: bool,
+    g: np.ndarray,
+    noise: np.ndarray,
+    phi0: np.ndarray,
+    q0: np.ndarray,
+) -> np.ndarray:
+    """:func:`step_phis_qs` then :func:`chain_totals` in one call: the running totals, (2, m, 15, 15).
+
+    Args:
+        records: See :func:`step_phis_qs`.
+        dt: See :func:`step_phis_qs`.
+        rk4: See :func:`step_phis_qs`.
+        g: See :func:`step_phis_qs`.
+        noise: See :func:`step_phis_qs`.
+        phi0: The total before the first interval, (15, 15); ``q0`` its noise.
+        q0: See ``phi0``.
+    """
+    links = step_phis_qs(records, dt, rk4, g, noise)
+    return chain_totals(links[0], links[1], phi0, q0)
 
 
 @njit
@@ -357,7 +386,7 @@ def propagate_span(
     rk4: bool,
     g: np.ndarray,
     noise: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray]:
     """A span's mean, ``Phi`` and ``Q``: ``propagate_values`` without intrinsics, the same recursion order.
 
     Args:
@@ -377,14 +406,15 @@ def propagate_span(
         noise: The four densities in ``ImuNoise`` order, shape (4,).
 
     Returns:
-        ``(R1, p1, v1, Phi (15, 15), Q (15, 15))`` over the span.
+        ``(state, [Phi, Q])`` over the span: ``state`` the end's ``R1`` (rows 0-2), ``p1`` (row 3), ``v1``
+        (row 4), shape (5, 3); ``Phi``, ``Q`` (15, 15) each, stacked (2, 15, 15).
     """
     R, p, v = R0, p0, v0
     Rf, pf, vf = fej_R, fej_p, fej_v
     phi_tot, q_tot = np.eye(IMU_DIM), np.zeros((IMU_DIM, IMU_DIM))
     phi, q = np.zeros((IMU_DIM, IMU_DIM)), np.zeros((IMU_DIM, IMU_DIM))
     for k in range(dt.shape[0]):
-        R1, p1, v1, theta, theta_m, Rm, am = mean_step(R, p, v, w0[k], w1[k], a0[k], a1[k], dt[k], rk4, g)
+        R1, p1, v1, theta, theta_m, Rm, am = _mean(R, p, v, w0[k], w1[k], a0[k], a1[k], dt[k], rk4, g)
         phi[:, :] = 0.0
         q[:, :] = 0.0
         _fill_phi(phi, dt[k], R, R1, theta, v1, p1, Rf, vf, pf, rk4, Rm, am, a1[k], theta_m, g)
@@ -395,4 +425,11 @@ def propagate_span(
             phi_tot, q_tot = _link(phi, q, phi_tot, q_tot)
         R, p, v = R1, p1, v1
         Rf, pf, vf = R1, p1, v1
-    return R, p, v, phi_tot, q_tot
+    state = np.empty((5, 3))
+    state[0:3] = R
+    state[3] = p
+    state[4] = v
+    out = np.empty((2, IMU_DIM, IMU_DIM))
+    out[0] = phi_tot
+    out[1] = q_tot
+    return state, out

@@ -56,13 +56,28 @@ def mean_record(
         raw: Kept in the record for the intrinsic columns; None without them.
     """
     rk4 = method == Integration.RK4
-    R1, p1, v1, theta, theta_m, Rm, am = kernels.mean_step(
-        imu.R_WB, imu.p_WB, imu.v_WB, w0, w1, a0, a1, float(dt), rk4, gravity_W()
-    )
-    new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
+    rec = kernels.mean_step(imu.R_WB, imu.p_WB, imu.v_WB, w0, w1, a0, a1, float(dt), rk4, gravity_W())
+    R1 = rec[0:3]
+    new = ImuValues(R1, rec[3], rec[4], imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
     if not rk4:
-        return StepMean(imu, new, method, dt, theta, R1, None, None, None, a1, raw)
-    return StepMean(imu, new, method, dt, theta, R1, theta_m, Rm, am, a1, raw)
+        return StepMean(imu, new, method, dt, rec[5], R1, None, None, None, a1, raw, rec)
+    return StepMean(imu, new, method, dt, rec[5], R1, rec[6], rec[7:10], rec[10], a1, raw, rec)
+
+
+def _records(steps: list[StepMean]) -> np.ndarray:
+    """The steps' kernel records stacked, shape (m, RECORD_ROWS, 3) (built from the fields where missing)."""
+    rows = []
+    for s in steps:
+        if s.packed is not None:
+            rows.append(s.packed)
+            continue
+        rec = np.zeros((kernels.RECORD_ROWS, 3))
+        rec[0:3], rec[3], rec[4], rec[5] = s.R1, s.new.p_WB, s.new.v_WB, s.theta
+        if s.method == Integration.RK4:
+            rec[6], rec[7:10], rec[10] = s.theta_m, s.Rm, s.am
+        rec[11:14], rec[14], rec[15], rec[16] = s.start.R_WB, s.start.p_WB, s.start.v_WB, s.a1
+        rows.append(rec)
+    return np.array(rows)
 
 
 def step_links(steps: list[StepMean], noise: ImuNoise) -> tuple[np.ndarray, np.ndarray]:
@@ -72,44 +87,32 @@ def step_links(steps: list[StepMean], noise: ImuNoise) -> tuple[np.ndarray, np.n
     :func:`~viotb.vio.imu_kernels.step_phis_qs`.
     """
     rk4 = steps[0].method == Integration.RK4
-    starts = [s.start for s in steps]
-    news = [s.new for s in steps]
-    if rk4:
-        extra = (
-            np.array([s.Rm for s in steps]),
-            np.array([s.am for s in steps]),
-            np.array([s.a1 for s in steps]),
-            np.array([s.theta_m for s in steps]),
-        )
-    else:
-        zeros = np.zeros((len(steps), 3))
-        extra = (np.zeros((len(steps), 3, 3)), zeros, zeros, zeros)
-    return kernels.step_phis_qs(
-        np.array([s.dt for s in steps], dtype=float),
-        np.array([x.R_WB for x in starts]),
-        np.array([x.v_WB for x in starts]),
-        np.array([x.p_WB for x in starts]),
-        np.array([x.R_WB for x in news]),
-        np.array([x.v_WB for x in news]),
-        np.array([x.p_WB for x in news]),
-        np.array([s.theta for s in steps]),
-        rk4,
-        *extra,
-        gravity_W(),
-        noise_vector(noise),
-    )
+    dt = np.array([s.dt for s in steps], dtype=float)
+    out = kernels.step_phis_qs(_records(steps), dt, rk4, gravity_W(), noise_vector(noise))
+    return out[0], out[1]
+
+
+def step_chain_totals(
+    steps: list[StepMean], noise: ImuNoise, phi0: np.ndarray, q0: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`step_links` then :func:`chain_links` in one kernel: the running totals, (m, 15, 15) each."""
+    rk4 = steps[0].method == Integration.RK4
+    dt = np.array([s.dt for s in steps], dtype=float)
+    out = kernels.step_chain(_records(steps), dt, rk4, gravity_W(), noise_vector(noise), phi0, q0)
+    return out[0], out[1]
 
 
 def chain_links(
     phis: np.ndarray, qs: np.ndarray, phi0: np.ndarray, q0: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Running totals of a chain (:func:`~viotb.vio.imu_kernels.chain_totals`); shapes (m, d, d)."""
-    return kernels.chain_totals(
+    """A chain's running totals ``(phi_tots, q_tots)``, (m, d, d) each (``imu_kernels.chain_totals``)."""
+    out = kernels.chain_totals(
         np.ascontiguousarray(phis, dtype=float),
         np.ascontiguousarray(qs, dtype=float),
         np.ascontiguousarray(phi0, dtype=float),
         np.ascontiguousarray(q0, dtype=float),
     )
+    return out[0], out[1]
 
 
 def propagate_span_values(
@@ -137,7 +140,7 @@ def propagate_span_values(
         imu_fej: First estimates at the start (None: ``imu``).
     """
     fej = imu if imu_fej is None else imu_fej
-    R1, p1, v1, phi, q = kernels.propagate_span(
+    state, phq = kernels.propagate_span(
         imu.R_WB,
         imu.p_WB,
         imu.v_WB,
@@ -153,8 +156,8 @@ def propagate_span_values(
         gravity_W(),
         noise_vector(noise),
     )
-    new = ImuValues(R1, p1, v1, imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
-    return new, phi, q
+    new = ImuValues(state[0:3], state[3], state[4], imu.gyro_bias_rad_s.copy(), imu.accel_bias_m_s2.copy())
+    return new, phq[0], phq[1]
 
 
 def warm_up() -> None:
@@ -174,6 +177,7 @@ def warm_up() -> None:
         step = mean_record(imu, w[0], w[1], a[0], a[1], 0.005, method)
         phis, qs = step_links([step], noise)
         chain_links(phis, qs, np.eye(phis.shape[1]), np.zeros(phis.shape[1:]))
+        step_chain_totals([step], noise, np.eye(phis.shape[1]), np.zeros(phis.shape[1:]))
         propagate_span_values(imu, w[:1], w[1:], a[:1], a[1:], np.array([0.005]), method, noise)
 
 

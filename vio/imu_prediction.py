@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 from viotb.vio.imu_intrinsics import ImuIntrinsics
-from viotb.vio.imu_kernels_calls import chain_links, step_links
+from viotb.vio.imu_kernels_calls import chain_links, step_chain_totals, step_links
 from viotb.vio.propagator import (
     Propagator,
     StepMean,
@@ -148,9 +148,9 @@ class PredictionChain:
         q_tot: np.ndarray,
     ) -> None:
         """:meth:`_build_totals` by the kernels: the steps' ``Phi``, ``Q`` and the running totals (15, 15)."""
-        if len(steps) == len(pending):
-            phis, qs = step_links(steps, self._propagator.noise)
-        else:
+        if len(steps) == len(pending):  # the common case: one kernel for the links and their chain
+            phi_tots, q_tots = step_chain_totals(steps, self._propagator.noise, phi_tot, q_tot)
+        else:  # spans among the steps: their (Phi, Q) as predicted, the steps' built by the kernel
             phis, qs = np.empty((len(pending), IMU_DIM, IMU_DIM)), np.empty((len(pending), IMU_DIM, IMU_DIM))
             if steps:
                 built = step_links(steps, self._propagator.noise)
@@ -159,7 +159,7 @@ class PredictionChain:
             for i, link in enumerate(pending):
                 if not isinstance(link, StepMean):
                     phis[i], qs[i] = link
-        phi_tots, q_tots = chain_links(phis, qs, phi_tot, q_tot)
+            phi_tots, q_tots = chain_links(phis, qs, phi_tot, q_tot)
         self._totals.extend(zip(phi_tots, q_tots, strict=True))
 
 
