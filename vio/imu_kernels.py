@@ -5,7 +5,7 @@ stay the reference their tests compare against (``tests/test_imu_kernels.py``, 1
 writes the reference's formulas term by term in the reference's order of operations; only the 3 x 3 and
 15 x 15 products differ, summed here in index order where numpy's BLAS may group them otherwise (a last-bit
 difference). The products of the transitions skip their structural zeros: adding ``0 * x`` changes no sum,
-so the result is the dense product's, at a third of the work.
+so the result is the dense product's (a transition has 87 of 225 entries non-zero with RK4).
 
 Entry points (all arrays float64, frames and units as in :mod:`viotb.vio.imu_integration`):
 
