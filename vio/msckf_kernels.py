@@ -40,7 +40,11 @@ def _view_rows(
 ) -> None:
     """Prediction and the chain factors of one view (``feature_jacobian`` for one clone and camera)."""
     for i in range(3):
-        out_p_B[i] = R_WB[0, i] * (p_f[0] - p_WB[0]) + R_WB[1, i] * (p_f[1] - p_WB[1]) + R_WB[2, i] * (p_f[2] - p_WB[2])
+        out_p_B[i] = (
+            R_WB[0, i] * (p_f[0] - p_WB[0])
+            + R_WB[1, i] * (p_f[1] - p_WB[1])
+            + R_WB[2, i] * (p_f[2] - p_WB[2])
+        )
     for i in range(3):
         out_p_C[i] = (
             R_BC[0, i] * (out_p_B[0] - p_BC[0])
@@ -67,6 +71,44 @@ def _skew_product(A: np.ndarray, v: np.ndarray, out: np.ndarray, col: int, scale
         out[a, col + 0] = scale * (A[a, 1] * v[2] - A[a, 2] * v[1])
         out[a, col + 1] = scale * (A[a, 2] * v[0] - A[a, 0] * v[2])
         out[a, col + 2] = scale * (A[a, 0] * v[1] - A[a, 1] * v[0])
+
+
+@njit
+def _whiten_rows(X: np.ndarray, L: np.ndarray, m: int) -> None:
+    """``X <- L^-1 X`` on the views (rows: view, axis), ``L`` (m, m) lower triangular."""
+    n_col = X.shape[1]
+    for i in range(m):
+        for j in range(i):
+            lij = L[i, j]
+            if lij != 0.0:
+                for a in range(2):
+                    for c in range(n_col):
+                        X[2 * i + a, c] -= lij * X[2 * j + a, c]
+        inv = 1.0 / L[i, i]
+        for a in range(2):
+            for c in range(n_col):
+                X[2 * i + a, c] *= inv
+
+
+@njit
+def _reflect_rows(X: np.ndarray, vv: np.ndarray, tau: np.ndarray) -> None:
+    """``X <- H_2 H_1 H_0 X`` with the reflectors ``H_c = I - tau_c v_c v_c^T`` (``v_c`` zero above ``c``)."""
+    n_rows, n_col = X.shape
+    s = np.zeros(n_col)
+    for c in range(3):
+        if tau[c] == 0.0:
+            continue
+        s[:] = 0.0
+        for i in range(c, n_rows):
+            vi = vv[c, i]
+            for j in range(n_col):
+                s[j] += vi * X[i, j]
+        for j in range(n_col):
+            s[j] *= tau[c]
+        for i in range(c, n_rows):
+            vi = vv[c, i]
+            for j in range(n_col):
+                X[i, j] -= vi * s[j]
 
 
 @njit
@@ -131,7 +173,7 @@ def feature_gate_kernel(
     dz_dpb = np.zeros((2, 3))
     p_B = np.zeros(3)
     p_C = np.zeros(3)
-    rows = np.zeros((2, n_c + 4))
+    rows = np.zeros((2, 2 * n_c + 4))
     for f in range(F):
         views = np.zeros(V, np.int64)
         m = 0
@@ -141,7 +183,9 @@ def feature_gate_kernel(
                 m += 1
         n_rows = 2 * m
         # [H_x | H_f | r] of the valid views, rows (view, axis).
-        A = np.zeros((n_rows, n_c + 4))
+        A = np.zeros((n_rows, 2 * n_c + 4))  # [H_x | H_f | r | H_x P]
+        blk = np.zeros((m, 12), np.int64)  # the columns each view's rows touch
+        n_blk = np.zeros(m, np.int64)
         for j in range(m):
             v = views[j]
             k = v % K
@@ -156,7 +200,9 @@ def feature_gate_kernel(
             for a in range(2):
                 for i in range(3):  # H_f = dz/dp_B R_WB^T
                     hf = w * (
-                        dz_dpb[a, 0] * R_jac[k, i, 0] + dz_dpb[a, 1] * R_jac[k, i, 1] + dz_dpb[a, 2] * R_jac[k, i, 2]
+                        dz_dpb[a, 0] * R_jac[k, i, 0]
+                        + dz_dpb[a, 1] * R_jac[k, i, 1]
+                        + dz_dpb[a, 2] * R_jac[k, i, 2]
                     )
                     rows[a, n_c + i] = hf
                     rows[a, 6 * k + 3 + i] = -hf
@@ -165,10 +211,26 @@ def feature_gate_kernel(
                 for a in range(2):
                     for i in range(3):
                         rows[a, ext_col + 3 + i] = -w * dz_dpb[a, i]
+            for i in range(6):
+                blk[j, i] = 6 * k + i
+            n_blk[j] = 6
+            if has_ext and c == 0:
+                for i in range(6):
+                    blk[j, 6 + i] = ext_col + i
+                n_blk[j] = 12
             rows[0, n_c + 3] = r0
             rows[1, n_c + 3] = r1
             A[2 * j] = rows[0]
             A[2 * j + 1] = rows[1]
+        # G = H_x P of the unwhitened rows from the per-view blocks (2 x 6 on its clone, plus the
+        # extrinsic's 6 on a cam0 view), carried through the same row operations: H_o P.
+        for i in range(n_rows):
+            for ci in range(n_blk[i // 2]):
+                col = blk[i // 2, ci]
+                h = A[i, col]
+                for c in range(n_c):
+                    A[i, n_c + 4 + c] += h * P_cc[col, c]
+        L = np.zeros((m, m))
         if rw_to_white_var > 0.0:
             # Clock: image path (px) since the feature's first view in each camera; R = I + q min(n_k, n_l).
             path = np.zeros(m)
@@ -179,23 +241,16 @@ def feature_gate_kernel(
                     dx1 = xy[f, v, 1] - xy[f, u, 1]
                     step = np.sqrt(dx0 * dx0 + dx1 * dx1) * focal_v[v]
                     path[j] = path[j - 1] + (step if np.isfinite(step) else 0.0)
-            L = np.zeros((m, m))
             for i in range(m):
                 for j in range(i + 1):
                     same = views[i] // K == views[j] // K
                     L[i, j] = rw_to_white_var * min(path[i], path[j]) if same else 0.0
                 L[i, i] += 1.0
             L = np.linalg.cholesky(L)
-            # A <- L^-1 A on the views, for each image axis (forward substitution).
-            for i in range(m):
-                for j in range(i):
-                    lij = L[i, j]
-                    if lij != 0.0:
-                        for a in range(2):
-                            A[2 * i + a] -= lij * A[2 * j + a]
-                for a in range(2):
-                    A[2 * i + a] /= L[i, i]
+            _whiten_rows(A, L, m)  # A <- L^-1 A on the views, for each image axis
         # Householder QR of the H_f columns (LAPACK dgeqrf's reflectors) applied to every column.
+        vv = np.zeros((3, n_rows))
+        tau = np.zeros(3)
         for col in range(3):
             cc = n_c + col
             alpha = A[col, cc]
@@ -206,27 +261,22 @@ def feature_gate_kernel(
             if xnorm == 0.0:
                 continue
             beta = -np.copysign(np.hypot(alpha, xnorm), alpha)
-            tau = (beta - alpha) / beta
+            tau[col] = (beta - alpha) / beta
             scale = 1.0 / (alpha - beta)
-            vvec = np.zeros(n_rows)
-            vvec[col] = 1.0
+            vv[col, col] = 1.0
             for i in range(col + 1, n_rows):
-                vvec[i] = A[i, cc] * scale
-            for j in range(n_c + 4):
-                s = 0.0
-                for i in range(col, n_rows):
-                    s += vvec[i] * A[i, j]
-                s *= tau
-                if s != 0.0:
-                    for i in range(col, n_rows):
-                        A[i, j] -= s * vvec[i]
+                vv[col, i] = A[i, cc] * scale
+            single = np.zeros(3)
+            single[col] = tau[col]
+            _reflect_rows(A, vv, single)
         o = first_row[f]
         n_o = n_rows - 3
-        Ho = np.ascontiguousarray(A[3:, :n_c])
-        H_o[o : o + n_o] = Ho
+        H_o[o : o + n_o] = A[3:, :n_c]
         r_o[o : o + n_o] = A[3:, n_c + 3]
-        S = np.dot(np.dot(Ho, P_cc), Ho.T)
+        S = np.dot(np.ascontiguousarray(A[3:, n_c + 4 :]), np.ascontiguousarray(A[3:, :n_c]).T)
         for i in range(n_o):
+            for j in range(i):
+                S[i, j] = S[j, i] = 0.5 * (S[i, j] + S[j, i])
             S[i, i] += sigma2
         y = np.linalg.solve(S, r_o[o : o + n_o])
         chi2[f] = np.dot(r_o[o : o + n_o], y)

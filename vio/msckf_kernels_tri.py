@@ -1,7 +1,7 @@
 """Compiled triangulation of the MSCKF update: :func:`viotb.vio.triangulation.triangulate` in loops.
 
-The same computation as the batched numpy reference (anchor at the first view, linear midpoint start by a
-3 x 3 SVD, Levenberg-Marquardt on the inverse depth ``(alpha, beta, rho)`` with one damping per feature,
+The same computation as the batched numpy reference (anchor at the first view, linear midpoint start by the
+3 x 3 SVD of a symmetric matrix, here its Jacobi eigendecomposition, Levenberg-Marquardt on the inverse depth ``(alpha, beta, rho)`` with one damping per feature,
 the same checks), written as loops over features and views so that one call does the whole batch: the
 numpy version spends its time in ~300 small-array calls per update (README "MSCKF per frame"). The
 iterations stop for all features together, as in the reference (once every feature's last step is below
@@ -44,8 +44,45 @@ def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @njit
-def _cost(h1: np.ndarray, dh: np.ndarray, xy: np.ndarray, mask: np.ndarray, x: np.ndarray, h: np.ndarray) -> float:
-    """Fill ``h`` (K, 3) at the parameters ``x`` and return the squared reprojection error (masked views 0)."""
+def _eig_sym3(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (by decreasing magnitude) and eigenvectors (columns) of a symmetric 3 x 3 ``A``.
+
+    Cyclic Jacobi rotations (Golub and Van Loan, "Matrix Computations", Alg. 8.5.3) to round-off: for the
+    symmetric midpoint matrix this is its SVD (singular values ``|w|``) without a LAPACK call per feature.
+    """
+    a = A.copy()
+    V = np.eye(3)
+    for _ in range(30):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        diag = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off <= 1e-36 * diag or off == 0.0:
+            break
+        for p_, q in ((0, 1), (0, 2), (1, 2)):
+            if a[p_, q] == 0.0:
+                continue
+            theta = (a[q, q] - a[p_, p_]) / (2.0 * a[p_, q])
+            t = np.copysign(1.0, theta) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+            c = 1.0 / np.sqrt(t * t + 1.0)
+            s_ = t * c
+            for k in range(3):  # a <- a J (columns p, q)
+                akp, akq = a[k, p_], a[k, q]
+                a[k, p_], a[k, q] = c * akp - s_ * akq, s_ * akp + c * akq
+            for k in range(3):  # a <- J^T a (rows p, q)
+                apk, aqk = a[p_, k], a[q, k]
+                a[p_, k], a[q, k] = c * apk - s_ * aqk, s_ * apk + c * aqk
+            for k in range(3):
+                vkp, vkq = V[k, p_], V[k, q]
+                V[k, p_], V[k, q] = c * vkp - s_ * vkq, s_ * vkp + c * vkq
+    w = np.array([a[0, 0], a[1, 1], a[2, 2]])
+    order = np.argsort(-np.abs(w))
+    return w[order], V[:, order]
+
+
+@njit
+def _cost(
+    h1: np.ndarray, dh: np.ndarray, xy: np.ndarray, mask: np.ndarray, x: np.ndarray, h: np.ndarray
+) -> float:
+    """Fill ``h`` (K, 3) at the parameters ``x``; return the squared reprojection error (masked views 0)."""
     cost = 0.0
     for k in range(h.shape[0]):
         for i in range(3):
@@ -110,7 +147,11 @@ def triangulate_kernel(
         for k in range(K):
             for i in range(3):
                 for c in range(3):
-                    R_AC[i, c] = R_WC[a, 0, i] * R_WC[k, 0, c] + R_WC[a, 1, i] * R_WC[k, 1, c] + R_WC[a, 2, i] * R_WC[k, 2, c]
+                    R_AC[i, c] = (
+                        R_WC[a, 0, i] * R_WC[k, 0, c]
+                        + R_WC[a, 1, i] * R_WC[k, 1, c]
+                        + R_WC[a, 2, i] * R_WC[k, 2, c]
+                    )
                 p_AC[f, k, i] = (
                     R_WC[a, 0, i] * (p_WC[k, 0] - p_WC[a, 0])
                     + R_WC[a, 1, i] * (p_WC[k, 1] - p_WC[a, 1])
@@ -121,7 +162,9 @@ def triangulate_kernel(
                 h1[f, k, i] = R_AC[2, i]
                 dh[f, k, i, 0] = R_AC[0, i]
                 dh[f, k, i, 1] = R_AC[1, i]
-                dh[f, k, i, 2] = -(R_AC[0, i] * p_AC[f, k, 0] + R_AC[1, i] * p_AC[f, k, 1] + R_AC[2, i] * p_AC[f, k, 2])
+                dh[f, k, i, 2] = -(
+                    R_AC[0, i] * p_AC[f, k, 0] + R_AC[1, i] * p_AC[f, k, 1] + R_AC[2, i] * p_AC[f, k, 2]
+                )
             if not mask[f, k]:
                 continue
             b = np.zeros(3)
@@ -137,15 +180,18 @@ def triangulate_kernel(
                     A[i, c] += proj
                     s += proj * p_AC[f, k, c]
                 rhs[i] += s
-        U, S, Vt = np.linalg.svd(A)
-        cond[f] = S[0] / max(S[2], 1e-300)
+        # Pseudo-inverse solve V S^+ U^T rhs with the SVD of the symmetric A = its eigendecomposition.
+        w_eig, V_eig = _eig_sym3(A)
+        S0, S2 = abs(w_eig[0]), abs(w_eig[2])
+        cond[f] = S0 / max(S2, 1e-300)
         uty = np.zeros(3)
         for j in range(3):
-            if S[j] > S[0] * 1e-12:
-                uty[j] = (U[0, j] * rhs[0] + U[1, j] * rhs[1] + U[2, j] * rhs[2]) / max(S[j], 1e-300)
+            if abs(w_eig[j]) > S0 * 1e-12:
+                proj_j = V_eig[0, j] * rhs[0] + V_eig[1, j] * rhs[1] + V_eig[2, j] * rhs[2]
+                uty[j] = proj_j / np.copysign(max(abs(w_eig[j]), 1e-300), w_eig[j])
         p_A = np.zeros(3)
         for i in range(3):
-            p_A[i] = Vt[0, i] * uty[0] + Vt[1, i] * uty[1] + Vt[2, i] * uty[2]
+            p_A[i] = V_eig[i, 0] * uty[0] + V_eig[i, 1] * uty[1] + V_eig[i, 2] * uty[2]
         z0 = p_A[2] if p_A[2] > 1e-6 else 1.0
         x[f, 0], x[f, 1], x[f, 2] = p_A[0] / z0, p_A[1] / z0, 1.0 / z0
         cost[f] = _cost(h1[f], dh[f], xy_norm[f], mask[f], x[f], h[f])

@@ -156,7 +156,9 @@ class MsckfParams:
     def __post_init__(self) -> None:
         """Reject an unknown ``update_kernels`` (ValueError naming the allowed ones)."""
         if self.update_kernels not in ("numba", "numpy"):
-            raise ValueError(f"MsckfParams.update_kernels must be 'numba' or 'numpy', got {self.update_kernels!r}")
+            raise ValueError(
+                f"MsckfParams.update_kernels must be 'numba' or 'numpy', got {self.update_kernels!r}"
+            )
 
     def with_render_klt_noise(self) -> MsckfParams:
         """These settings with the KLT noise model measured on this project's renders (white and walk).

@@ -221,8 +221,11 @@ def feature_system(
 
 
 def _update_columns(st: State) -> tuple[np.ndarray, np.ndarray]:
-    """``(cols, clone_offsets (K,))``: the error-state columns an update touches (clone k at 6 k, then the
-    extrinsic if estimated) and each clone block's offset."""
+    """The error-state columns an update touches and the clone blocks' offsets.
+
+    Returns:
+        ``(cols, clone_offsets (K,))``: clone k at 6 k, then the extrinsic if estimated.
+    """
     clone_offsets = np.array([st.clone_block(float(t)).offset for t in st.clones])
     cols = (clone_offsets[:, None] + np.arange(6)).ravel()
     if st.has_block(EXTRINSIC_BLOCK):
@@ -361,10 +364,14 @@ def msckf_update(
     right = calib_right if stereo else None
     if p.update_kernels == "numba":
         # 3-5 compiled, one call: residuals, Jacobians, whitening, null space and gate per feature.
-        H_rows, r_rows, _, chi2, dof = _projected_rows_numba(st, xy, mask, p_f, p, focal_px, right, focal_right_px, P_cc)
+        H_rows, r_rows, _, chi2, dof = _projected_rows_numba(
+            st, xy, mask, p_f, p, focal_px, right, focal_right_px, P_cc
+        )
     else:
         # 3. Residuals and Jacobians of every view (whitened), on the columns ``cols`` they touch.
-        r, H_x, H_f, cols, clone_offsets = feature_system(st, xy, mask, p_f, p, focal_px, right, focal_right_px)
+        r, H_x, H_f, cols, clone_offsets = feature_system(
+            st, xy, mask, p_f, p, focal_px, right, focal_right_px
+        )
         # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
         H_o, r_o = nullspace_project(H_x, H_f, r)
         # 5. Chi-square gate at 95 % per feature with dof = 2 m - 3 (m views over all cameras).
