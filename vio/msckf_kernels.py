@@ -128,6 +128,7 @@ def feature_gate_kernel(
     focal_v: np.ndarray,
     P_cc: np.ndarray,
     sigma2: float,
+    chi2_max: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Null-space-projected rows and chi-square of every feature (module docstring).
 
@@ -147,27 +148,22 @@ def feature_gate_kernel(
         focal_v: Focal length (px) of each view's camera, shape (C K,).
         P_cc: Covariance of the columns (clones, then extrinsic), shape (n_c, n_c), n_c = 6 K (+ 6).
         sigma2: White measurement variance (normalized coordinates squared).
+        chi2_max: Gate of each degree of freedom, shape (at least 2 C K - 2,): a feature passes when
+            ``chi2 < chi2_max[dof]``.
 
     Returns:
-        ``(H_o (N, n_c), r_o (N,), first_row (F + 1,), chi2 (F,), dof (F,))``: feature ``f``'s rows are
-        ``first_row[f]:first_row[f + 1]``, ``dof[f] = 2 m_f - 3`` of them.
+        ``(chi2 (F,), dof (F,), passed (F,), gram (n_c, n_c), h_r (n_c,))``: ``dof = 2 m - 3``, and the
+        normal equations ``H^T H``, ``H^T r`` of the passed features' stacked rows ``(H_o, r_o)``.
     """
     F, V = mask.shape
     K = R_cur.shape[0]
     n_c = P_cc.shape[0]
     ext_col = 6 * K
     dof = np.zeros(F, np.int64)
-    first_row = np.zeros(F + 1, np.int64)
-    for f in range(F):
-        m = 0
-        for v in range(V):
-            if mask[f, v]:
-                m += 1
-        dof[f] = 2 * m - 3
-        first_row[f + 1] = first_row[f] + dof[f]
-    H_o = np.zeros((first_row[F], n_c))
-    r_o = np.zeros(first_row[F])
     chi2 = np.zeros(F)
+    passed = np.zeros(F, np.bool_)
+    gram = np.zeros((n_c, n_c))
+    h_r = np.zeros(n_c)
     z = np.zeros(2)
     dz_dpc = np.zeros((2, 3))
     dz_dpb = np.zeros((2, 3))
@@ -182,6 +178,7 @@ def feature_gate_kernel(
                 views[m] = v
                 m += 1
         n_rows = 2 * m
+        dof[f] = n_rows - 3
         # [H_x | H_f | r] of the valid views, rows (view, axis).
         A = np.zeros((n_rows, 2 * n_c + 4))  # [H_x | H_f | r | H_x P]
         blk = np.zeros((m, 12), np.int64)  # the columns each view's rows touch
@@ -269,15 +266,17 @@ def feature_gate_kernel(
             single = np.zeros(3)
             single[col] = tau[col]
             _reflect_rows(A, vv, single)
-        o = first_row[f]
         n_o = n_rows - 3
-        H_o[o : o + n_o] = A[3:, :n_c]
-        r_o[o : o + n_o] = A[3:, n_c + 3]
-        S = np.dot(np.ascontiguousarray(A[3:, n_c + 4 :]), np.ascontiguousarray(A[3:, :n_c]).T)
+        Ho = np.ascontiguousarray(A[3:, :n_c])
+        ro = np.ascontiguousarray(A[3:, n_c + 3])
+        S = np.dot(np.ascontiguousarray(A[3:, n_c + 4 :]), Ho.T)
         for i in range(n_o):
             for j in range(i):
                 S[i, j] = S[j, i] = 0.5 * (S[i, j] + S[j, i])
             S[i, i] += sigma2
-        y = np.linalg.solve(S, r_o[o : o + n_o])
-        chi2[f] = np.dot(r_o[o : o + n_o], y)
-    return H_o, r_o, first_row, chi2, dof
+        chi2[f] = np.dot(ro, np.linalg.solve(S, ro))
+        passed[f] = chi2[f] < chi2_max[dof[f]]
+        if passed[f]:
+            gram += np.dot(Ho.T, Ho)
+            h_r += np.dot(Ho.T, ro)
+    return chi2, dof, passed, gram, h_r

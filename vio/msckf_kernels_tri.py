@@ -1,12 +1,13 @@
 """Compiled triangulation of the MSCKF update: :func:`viotb.vio.triangulation.triangulate` in loops.
 
-The same computation as the batched numpy reference (anchor at the first view, linear midpoint start by the
-3 x 3 SVD of a symmetric matrix, here its Jacobi eigendecomposition, Levenberg-Marquardt on the inverse depth ``(alpha, beta, rho)`` with one damping per feature,
-the same checks), written as loops over features and views so that one call does the whole batch: the
-numpy version spends its time in ~300 small-array calls per update (README "MSCKF per frame"). The
-iterations stop for all features together, as in the reference (once every feature's last step is below
-``step_tolerance`` of its parameters), so both take the same steps; the sums run in another order, so
-the points agree to round-off (``tests/test_msckf_kernels.py``).
+The same computation as the batched numpy reference (anchor at the first view, linear midpoint start by
+the 3 x 3 SVD of a symmetric matrix, here its Jacobi eigendecomposition, Levenberg-Marquardt on the
+inverse depth ``(alpha, beta, rho)`` with one damping per feature, the same checks), written as loops over
+features and views so that one call does the whole batch: the numpy version spends its time in ~300
+small-array calls per update (README "MSCKF per frame"). The iterations stop for all features together,
+as in the reference (once every feature's last step is below ``step_tolerance`` of its parameters), so
+both take the same steps; the sums run in another order, so the points agree to round-off, up to a last
+step accepted by one and not the other when the costs tie to round-off (``tests/test_msckf_kernels.py``).
 """
 
 from __future__ import annotations

@@ -37,6 +37,7 @@ from viotb.vio.update_helpers import (
     FeatureJacobian,
     clone_unobservable_basis,
     feature_jacobian,
+    gram_compress,
     measurement_compress,
     nullspace_project,
     observability_projector,
@@ -243,12 +244,13 @@ def _projected_rows_numba(
     calib_right: CameraCalibration | None,
     focal_right_px: float | None,
     P_cc: np.ndarray,
+    chi2_max: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Steps 3-5 by :func:`viotb.vio.msckf_kernels.feature_gate_kernel` (arguments as :func:`feature_system`).
 
     Returns:
-        ``(H_o (N, n_c), r_o (N,), first_row (F + 1,), chi2 (F,), dof (F,))``, each feature's ``dof``
-        null-space rows in turn (only its valid views: no padded rows).
+        ``(chi2 (F,), dof (F,), passed (F,), gram (n_c, n_c), h_r (n_c,))``: the gate and the normal
+        equations of the passed features' null-space rows.
     """
     from viotb.vio.msckf_kernels import feature_gate_kernel  # numba: not on the CLI's import path
 
@@ -286,6 +288,7 @@ def _projected_rows_numba(
         focal_v,
         np.ascontiguousarray(P_cc),
         (p.pixel_sigma_px / focal_px) ** 2,
+        chi2_max,
     )
 
 
@@ -364,8 +367,9 @@ def msckf_update(
     right = calib_right if stereo else None
     if p.update_kernels == "numba":
         # 3-5 compiled, one call: residuals, Jacobians, whitening, null space and gate per feature.
-        H_rows, r_rows, _, chi2, dof = _projected_rows_numba(
-            st, xy, mask, p_f, p, focal_px, right, focal_right_px, P_cc
+        chi2_max = p.chi2_multiplier * chi2_table(np.arange(2 * V - 2))
+        chi2, dof, passed, gram, h_r = _projected_rows_numba(
+            st, xy, mask, p_f, p, focal_px, right, focal_right_px, P_cc, chi2_max
         )
     else:
         # 3. Residuals and Jacobians of every view (whitened), on the columns ``cols`` they touch.
@@ -380,7 +384,7 @@ def msckf_update(
         S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += sigma2
         chi2 = np.einsum("fi,fi->f", r_o, np.linalg.solve(S, r_o[..., None])[..., 0])
         dof = 2 * mask.sum(axis=1) - 3
-    passed = chi2 < p.chi2_multiplier * chi2_table(dof)
+        passed = chi2 < p.chi2_multiplier * chi2_table(dof)
     n_pass = int(passed.sum())
     nis = chi2 / dof
     stats = UpdateStats(
@@ -397,13 +401,16 @@ def msckf_update(
         return stats
     # 6. Stack, compress (QR) and update.
     if p.update_kernels == "numba":
-        keep = np.repeat(passed, dof)  # each feature's dof rows
-        H_all, r_all = (H_rows, r_rows) if n_pass == F else (H_rows[keep], r_rows[keep])
-    elif n_pass == F:
-        H_all, r_all = H_o.reshape(-1, n_c), r_o.reshape(-1)
+        # The kernel summed the passed features' normal equations: factor them (measurement_compress).
+        if Pi is not None:
+            gram, h_r = Pi @ gram @ Pi, Pi @ h_r
+        H_c, r_c = gram_compress(gram, h_r)
     else:
-        H_all, r_all = H_o[passed].reshape(-1, n_c), r_o[passed].reshape(-1)
-    H_c, r_c = measurement_compress(H_all, r_all, Pi)
+        if n_pass == F:
+            H_all, r_all = H_o.reshape(-1, n_c), r_o.reshape(-1)
+        else:
+            H_all, r_all = H_o[passed].reshape(-1, n_c), r_o[passed].reshape(-1)
+        H_c, r_c = measurement_compress(H_all, r_all, Pi)
     if len(H_c) == 0:  # no direction carries information (all-zero rows): nothing to update
         return stats
     H_full = np.zeros((len(H_c), st.dim))
