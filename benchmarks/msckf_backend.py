@@ -11,9 +11,15 @@ the online run's estimates bit for bit (``tests/test_msckf_backend_bench.py``).
 Usage::
 
     python benchmarks/msckf_backend.py DATASET [--cameras 1|2] [--frontend klt|sim] [--repeats 3]
+        [--headset] [--kernels numba,numpy]
 
 prints one JSON object: per-frame median / p99 / max (ms) of the back end, of keyframes (an update ran) and
-of the other frames, the online run's front end per frame, and the frame counts.
+of the other frames, the online run's front end per frame, and the frame counts. ``--headset`` builds the
+estimator as ``envs/run/headset.py`` does (``HEADSET_MSCKF``: a clone every frame, gyro intrinsics, its
+track random walk; the gyro noise times ``default_gyro_noise_inflation`` by ``estimator_imu_noise``).
+``--kernels`` lists the ``MsckfParams.update_kernels`` to time: the online pass uses the first, and the
+replays of all of them run interleaved (repeat 1 of each, then repeat 2, ...), each with its per-frame
+minimum (``backend`` is the first's; ``backend_by_kernels`` has all, with the ratio of the summed minima).
 """
 
 from __future__ import annotations
@@ -21,14 +27,17 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from viotb.envs.data.euroc import read_euroc
 from viotb.envs.data.eval_frames import camera_frame, usable_frames
 from viotb.envs.data.eval_options import EvalOptions
+from viotb.envs.run.headset import HEADSET_MSCKF, default_gyro_noise_inflation, estimator_imu_noise
 from viotb.vio.factory import make_estimator
 from viotb.vio.frontend import Tracks
+from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.types import CameraFrame
 
 
@@ -70,11 +79,19 @@ class _ReplayedFrontEnd:
         """Nothing to reset (the captured tracks already contain the real front end's resets)."""
 
 
-def run_backend(dataset: Path, cameras: int = 1, frontend: str = "klt", tracks: list[Tracks] | None = None):
+def run_backend(
+    dataset: Path,
+    cameras: int = 1,
+    frontend: str = "klt",
+    tracks: list[Tracks] | None = None,
+    headset: bool = False,
+    kernels: str = "numba",
+):
     """Run the MSCKF over ``dataset`` (the real front end when ``tracks`` is None, else a replay of them).
 
     IMU samples and frames are interleaved as in :func:`viotb.envs.run.replay.replay` (the IMU from one
-    second before the first usable frame).
+    second before the first usable frame). ``headset``: the headset runner's settings (module doc);
+    ``kernels``: ``MsckfParams.update_kernels``.
 
     Returns:
         The :class:`BackendRun`.
@@ -82,7 +99,11 @@ def run_backend(dataset: Path, cameras: int = 1, frontend: str = "klt", tracks: 
     ds = read_euroc(Path(dataset))
     opts = EvalOptions(cameras=cameras, frontend=frontend)
     stereo = {"calib_right": ds.calib_right} if cameras == 2 else {}
-    est = make_estimator("msckf", ds.calib, ds.imu_noise, frontend=frontend, **stereo)
+    params, noise = replace(MsckfParams(), update_kernels=kernels), ds.imu_noise
+    if headset:
+        params = replace(HEADSET_MSCKF, update_kernels=kernels)
+        noise = estimator_imu_noise(noise, default_gyro_noise_inflation("msckf", params))
+    est = make_estimator("msckf", ds.calib, noise, frontend=frontend, params=params, **stereo)
     first, stop = usable_frames(ds, opts)
     front_ms = np.zeros(stop - first)
     run = BackendRun()
@@ -142,25 +163,48 @@ def _summary(ms: np.ndarray) -> dict:
     }
 
 
-def measure(dataset: Path, cameras: int = 1, frontend: str = "klt", repeats: int = 3) -> dict:
+def measure(
+    dataset: Path,
+    cameras: int = 1,
+    frontend: str = "klt",
+    repeats: int = 3,
+    headset: bool = False,
+    kernels: tuple[str, ...] = ("numba",),
+) -> dict:
     """Capture the front end once, replay the back end ``repeats`` times; per-frame minima (module doc)."""
-    online = run_backend(dataset, cameras, frontend)
-    replays = [run_backend(dataset, cameras, frontend, online.tracks) for _ in range(repeats)]
-    best = np.min([r.backend_ms for r in replays], axis=0)
+    online = run_backend(dataset, cameras, frontend, headset=headset, kernels=kernels[0])
+    replays: dict[str, list[BackendRun]] = {k: [] for k in kernels}
+    for _ in range(repeats):
+        for k in kernels:  # interleaved: every variant sees the same load
+            replays[k].append(run_backend(dataset, cameras, frontend, online.tracks, headset, k))
+    best = {k: np.min([r.backend_ms for r in runs], axis=0) for k, runs in replays.items()}
     reproduced = all(
         all(np.array_equal(a, b) for a, b in zip(x, y, strict=True))
-        for r in replays
+        for r in replays[kernels[0]]
         for x, y in zip(online.estimates, r.estimates, strict=True)
-    ) and all(len(r.estimates) == len(online.estimates) for r in replays)
+    ) and all(len(r.estimates) == len(online.estimates) for r in replays[kernels[0]])
     kf = online.keyframe
+    by_kernels = {
+        k: {
+            "backend": _summary(b),
+            "backend_keyframes": _summary(b[kf]),
+            "sum_ms": float(np.sum(b)),
+            "sum_ratio_to_first": float(np.sum(b) / np.sum(best[kernels[0]])),
+        }
+        for k, b in best.items()
+    }
+    first = best[kernels[0]]
     return {
         "dataset": str(dataset),
         "cameras": cameras,
         "frontend": frontend,
+        "headset": headset,
+        "kernels": list(kernels),
         "repeats": repeats,
-        "backend": _summary(best),
-        "backend_keyframes": _summary(best[kf]),
-        "backend_other_frames": _summary(best[~kf]),
+        "backend": _summary(first),
+        "backend_keyframes": _summary(first[kf]),
+        "backend_other_frames": _summary(first[~kf]),
+        "backend_by_kernels": by_kernels,
         "frontend_online": _summary(online.frontend_ms),
         "replay_reproduces_online_estimates": bool(reproduced),
     }
@@ -173,8 +217,13 @@ def main() -> None:
     ap.add_argument("--cameras", type=int, choices=(1, 2), default=1)
     ap.add_argument("--frontend", choices=("klt", "sim"), default="klt")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument(
+        "--headset", action="store_true", help="the headset runner's MSCKF settings and IMU noise"
+    )
+    ap.add_argument("--kernels", default="numba", help="comma-separated MsckfParams.update_kernels to time")
     a = ap.parse_args()
-    print(json.dumps(measure(a.dataset, a.cameras, a.frontend, a.repeats), indent=1))
+    kernels = tuple(k.strip() for k in a.kernels.split(",") if k.strip())
+    print(json.dumps(measure(a.dataset, a.cameras, a.frontend, a.repeats, a.headset, kernels), indent=1))
 
 
 if __name__ == "__main__":

@@ -55,3 +55,18 @@ def test_measure_reports_positive_finite_figures(figure8):
             assert np.isfinite(part[name]) and part[name] > 0.0, (key, name)
     n_kf, n_other = out["backend_keyframes"]["frames"], out["backend_other_frames"]["frames"]
     assert n_kf + n_other == out["backend"]["frames"]
+
+
+def test_measure_times_both_kernels_and_they_fly_the_same(figure8):
+    bench = load_repo_script("benchmarks/msckf_backend.py")
+    out = bench.measure(figure8, repeats=1, kernels=("numba", "numpy"))
+    assert out["replay_reproduces_online_estimates"] is True
+    assert set(out["backend_by_kernels"]) == {"numba", "numpy"}
+    assert out["backend_by_kernels"]["numba"]["sum_ratio_to_first"] == 1.0
+    assert out["backend_by_kernels"]["numpy"]["backend"]["frames"] == out["backend"]["frames"]
+    # The two update paths agree to round-off, so the replayed trajectories agree far below a micrometre.
+    online = bench.run_backend(figure8)
+    ref = bench.run_backend(figure8, tracks=online.tracks, kernels="numpy")
+    assert len(ref.estimates) == len(online.estimates)
+    worst = max(np.abs(a[0] - b[0]).max() for a, b in zip(online.estimates, ref.estimates, strict=True))
+    assert worst < 1e-6

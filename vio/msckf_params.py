@@ -116,6 +116,10 @@ class MsckfParams:
             calibrated IMU: no gate 4.1 / 6.0 (NEES 2.6 / 5.0), 0.1: 4.4 / 5.9, 0.05: 4.0 / 4.4 (2.3 /
             3.1); without landmarks 5.2 / 5.2. Not a general rule: on a mono KLT drone figure-8 (20 s)
             the gate makes it worse (ATE 2.8 cm, NEES 2.6 without; 4.2 cm, NEES 7.1 with).
+        update_kernels: How the MSCKF update's per-feature stages run: ``"numba"`` (compiled loops,
+            :mod:`viotb.vio.msckf_kernels` and :mod:`viotb.vio.msckf_kernels_tri`: triangulation,
+            residuals, Jacobians, whitening, null space and chi-square gate in two calls) or ``"numpy"``
+            (the batched reference). They agree to round-off (README "MSCKF per frame", session 10).
     """
 
     max_clones: int = 11
@@ -147,6 +151,14 @@ class MsckfParams:
     runaway_reject_ratio: float = 0.7
     max_slam_features: int = 0
     slam_max_init_sigma_ratio: float = 0.05
+    update_kernels: str = "numba"
+
+    def __post_init__(self) -> None:
+        """Reject an unknown ``update_kernels`` (ValueError naming the allowed ones)."""
+        if self.update_kernels not in ("numba", "numpy"):
+            raise ValueError(
+                f"MsckfParams.update_kernels must be 'numba' or 'numpy', got {self.update_kernels!r}"
+            )
 
     def with_render_klt_noise(self) -> MsckfParams:
         """These settings with the KLT noise model measured on this project's renders (white and walk).

@@ -37,6 +37,7 @@ from viotb.vio.update_helpers import (
     FeatureJacobian,
     clone_unobservable_basis,
     feature_jacobian,
+    gram_compress,
     measurement_compress,
     nullspace_project,
     observability_projector,
@@ -220,6 +221,77 @@ def feature_system(
     return r, H_x, H_f, cols, clone_offsets
 
 
+def _update_columns(st: State) -> tuple[np.ndarray, np.ndarray]:
+    """The error-state columns an update touches and the clone blocks' offsets.
+
+    Returns:
+        ``(cols, clone_offsets (K,))``: clone k at 6 k, then the extrinsic if estimated.
+    """
+    clone_offsets = np.array([st.clone_block(float(t)).offset for t in st.clones])
+    cols = (clone_offsets[:, None] + np.arange(6)).ravel()
+    if st.has_block(EXTRINSIC_BLOCK):
+        cols = np.concatenate([cols, st.block(EXTRINSIC_BLOCK).offset + np.arange(6)])
+    return cols, clone_offsets
+
+
+def _projected_rows_numba(
+    st: State,
+    xy: np.ndarray,
+    mask: np.ndarray,
+    p_f: np.ndarray,
+    p: MsckfParams,
+    focal_px: float,
+    calib_right: CameraCalibration | None,
+    focal_right_px: float | None,
+    P_cc: np.ndarray,
+    chi2_max: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Steps 3-5 by :func:`viotb.vio.msckf_kernels.feature_gate_kernel` (arguments as :func:`feature_system`).
+
+    Returns:
+        ``(chi2 (F,), dof (F,), passed (F,), gram (n_c, n_c), h_r (n_c,))``: the gate and the normal
+        equations of the passed features' null-space rows.
+    """
+    from viotb.vio.msckf_kernels import feature_gate_kernel  # numba: not on the CLI's import path
+
+    clones = list(st.clones.values())
+    R_WB = np.stack([c.R_WB for c in clones])
+    p_WB = np.stack([c.p_WB for c in clones])
+    if p.use_fej and p.update_linearization == "first_estimates":
+        R_jac, p_jac = np.stack([c.R_WB_fej for c in clones]), np.stack([c.p_WB_fej for c in clones])
+    else:
+        R_jac, p_jac = R_WB, p_WB
+    K = len(clones)
+    R_BC = [np.asarray(st.R_BC, dtype=float)]
+    p_BC = [np.asarray(st.p_BC, dtype=float)]
+    w_right = 1.0
+    if calib_right is not None:
+        R_BC.append(np.asarray(calib_right.R_BC, dtype=float))
+        p_BC.append(np.asarray(calib_right.p_BC, dtype=float))
+        if focal_right_px is not None and focal_right_px != focal_px:
+            w_right = focal_right_px / focal_px
+    V = mask.shape[1]
+    focal_v = np.where(np.arange(V) < K, focal_px, focal_right_px or focal_px).astype(float)
+    return feature_gate_kernel(
+        np.ascontiguousarray(xy, dtype=float),
+        np.ascontiguousarray(mask, dtype=bool),
+        np.ascontiguousarray(p_f, dtype=float),
+        R_WB,
+        p_WB,
+        np.ascontiguousarray(R_jac),
+        np.ascontiguousarray(p_jac),
+        np.stack(R_BC),
+        np.stack(p_BC),
+        st.has_block(EXTRINSIC_BLOCK),
+        float(w_right),
+        track_random_walk_px2_per_px(p) / p.pixel_sigma_px**2,
+        focal_v,
+        np.ascontiguousarray(P_cc),
+        (p.pixel_sigma_px / focal_px) ** 2,
+        chi2_max,
+    )
+
+
 def msckf_update(
     st: State,
     db: FeatureDatabase,
@@ -268,7 +340,7 @@ def msckf_update(
     db.remove_features(cand)
     # 2. Triangulate every feature from all its views in the current clone estimates.
     R_WC, p_WC = view_poses(st, calib_right if stereo else None)
-    tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, focal_px)
+    tri = triangulate(R_WC, p_WC, xy, mask, p.triangulation, focal_px, p.update_kernels)
     ok = tri.valid
     n_cand = len(cand)
     n_bad = int(np.sum(tri.rms_error_px >= p.triangulation.max_reprojection_error_px))
@@ -276,14 +348,10 @@ def msckf_update(
         return UpdateStats(candidates=n_cand, inconsistent=n_bad)
     xy, mask, p_f = xy[ok], mask[ok], tri.p_W[ok]
     F, V = mask.shape
-    # 3. Residuals and Jacobians of every view (whitened), on the columns ``cols`` they touch.
-    r, H_x, H_f, cols, clone_offsets = feature_system(
-        st, xy, mask, p_f, p, focal_px, calib_right if stereo else None, focal_right_px
-    )
-    n_c = len(cols)
     clones = list(st.clones.values())
-    # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
-    H_o, r_o = nullspace_project(H_x, H_f, r)
+    # The rows touch only the clone blocks and the extrinsic: steps 3-6 work on those columns ``cols``.
+    cols, clone_offsets = _update_columns(st)
+    n_c = len(cols)
     P_cc = st.cov[np.ix_(cols, cols)]
     Pi = None
     if p.use_fej and p.update_linearization == "current_oc":
@@ -295,14 +363,28 @@ def msckf_update(
         U = clone_unobservable_basis(R_fej, p_fej, clone_offsets, st.dim)
         Pi = observability_projector(U[cols])  # U is zero off the clone blocks
         P_cc = Pi @ P_cc @ Pi
-    # 5. Chi-square gate at 95 % per feature with dof = 2 m - 3 (m views over all cameras).
     sigma2 = (p.pixel_sigma_px / focal_px) ** 2
-    HP = (H_o.reshape(-1, n_c) @ P_cc).reshape(H_o.shape)
-    S = HP @ np.swapaxes(H_o, 1, 2)
-    S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += sigma2
-    chi2 = np.einsum("fi,fi->f", r_o, np.linalg.solve(S, r_o[..., None])[..., 0])
-    dof = 2 * mask.sum(axis=1) - 3
-    passed = chi2 < p.chi2_multiplier * chi2_table(dof)
+    right = calib_right if stereo else None
+    if p.update_kernels == "numba":
+        # 3-5 compiled, one call: residuals, Jacobians, whitening, null space and gate per feature.
+        chi2_max = p.chi2_multiplier * chi2_table(np.arange(2 * V - 2))
+        chi2, dof, passed, gram, h_r = _projected_rows_numba(
+            st, xy, mask, p_f, p, focal_px, right, focal_right_px, P_cc, chi2_max
+        )
+    else:
+        # 3. Residuals and Jacobians of every view (whitened), on the columns ``cols`` they touch.
+        r, H_x, H_f, cols, clone_offsets = feature_system(
+            st, xy, mask, p_f, p, focal_px, right, focal_right_px
+        )
+        # 4. Null-space projection removes the feature (padded rows are zero and drop out exactly).
+        H_o, r_o = nullspace_project(H_x, H_f, r)
+        # 5. Chi-square gate at 95 % per feature with dof = 2 m - 3 (m views over all cameras).
+        HP = (H_o.reshape(-1, n_c) @ P_cc).reshape(H_o.shape)
+        S = HP @ np.swapaxes(H_o, 1, 2)
+        S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += sigma2
+        chi2 = np.einsum("fi,fi->f", r_o, np.linalg.solve(S, r_o[..., None])[..., 0])
+        dof = 2 * mask.sum(axis=1) - 3
+        passed = chi2 < p.chi2_multiplier * chi2_table(dof)
     n_pass = int(passed.sum())
     nis = chi2 / dof
     stats = UpdateStats(
@@ -318,11 +400,17 @@ def msckf_update(
     if n_pass == 0:
         return stats
     # 6. Stack, compress (QR) and update.
-    if n_pass == F:
-        H_all, r_all = H_o.reshape(-1, n_c), r_o.reshape(-1)
+    if p.update_kernels == "numba":
+        # The kernel summed the passed features' normal equations: factor them (measurement_compress).
+        if Pi is not None:
+            gram, h_r = Pi @ gram @ Pi, Pi @ h_r
+        H_c, r_c = gram_compress(gram, h_r)
     else:
-        H_all, r_all = H_o[passed].reshape(-1, n_c), r_o[passed].reshape(-1)
-    H_c, r_c = measurement_compress(H_all, r_all, Pi)
+        if n_pass == F:
+            H_all, r_all = H_o.reshape(-1, n_c), r_o.reshape(-1)
+        else:
+            H_all, r_all = H_o[passed].reshape(-1, n_c), r_o[passed].reshape(-1)
+        H_c, r_c = measurement_compress(H_all, r_all, Pi)
     if len(H_c) == 0:  # no direction carries information (all-zero rows): nothing to update
         return stats
     H_full = np.zeros((len(H_c), st.dim))

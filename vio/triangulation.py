@@ -84,6 +84,7 @@ def triangulate(
     mask: np.ndarray,
     params: TriangulationParams | None = None,
     focal_px: float = 1.0,
+    kernels: str = "numpy",
 ) -> TriangulationResult:
     """Triangulate F features seen in (subsets of) K views.
 
@@ -94,6 +95,8 @@ def triangulate(
         mask: Which view saw which feature, shape (F, K) bool.
         params: Settings.
         focal_px: Focal length (px) used to express the reprojection error in pixels.
+        kernels: ``"numpy"`` (this batched reference) or ``"numba"`` (the same computation compiled,
+            :func:`viotb.vio.msckf_kernels_tri.triangulate_kernel`; equal to round-off).
 
     Returns:
         The points with their validity.
@@ -111,6 +114,32 @@ def triangulate(
     if F == 0:
         z = np.zeros(0)
         return TriangulationResult(np.zeros((0, 3)), np.zeros(0, dtype=bool), z, z)
+    if kernels == "numba":
+        from viotb.vio.msckf_kernels_tri import triangulate_kernel  # numba: not on the CLI's import path
+
+        limits = np.array(
+            [
+                p.min_depth_m,
+                p.max_depth_m,
+                p.max_depth_baseline_ratio,
+                p.max_condition_number,
+                p.max_reprojection_error_px,
+            ]
+        )
+        out = triangulate_kernel(
+            np.ascontiguousarray(R_WC),
+            np.ascontiguousarray(p_WC),
+            np.ascontiguousarray(xy_norm, dtype=float),
+            np.ascontiguousarray(mask),
+            int(p.max_iterations),
+            float(p.step_tolerance),
+            float(p.initial_damping),
+            float(focal_px),
+            limits,
+        )
+        return TriangulationResult(*out)
+    if kernels != "numpy":
+        raise ValueError(f"triangulate: kernels must be 'numpy' or 'numba', got {kernels!r}")
     xy = np.where(mask[..., None], xy_norm, 0.0)
     w = mask.astype(float)
     # 1. Anchor = first view of each feature.

@@ -152,6 +152,20 @@ def measurement_compress(
     gram, h_r = H.T @ H, H.T @ r
     if right is not None:
         gram, h_r = right @ gram @ right, right @ h_r
+    return gram_compress(gram, h_r)
+
+
+def gram_compress(gram: np.ndarray, h_r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`measurement_compress` from the normal equations: ``T^T T = gram`` and ``T^T r_c = h_r``.
+
+    Args:
+        gram: ``H^T H``, shape (n, n), symmetric positive semidefinite.
+        h_r: ``H^T r``, shape (n,).
+
+    Returns:
+        ``(T, r_c)`` with the numerical rank's rows (pivoted Cholesky, as :func:`measurement_compress`).
+    """
+    n = gram.shape[0]
     scale = float(np.max(np.diag(gram))) if n else 0.0
     if not scale > 0.0:
         return np.zeros((0, n)), np.zeros(0)
