@@ -195,10 +195,7 @@ def feature_system(
     H_f = (jac.H_feature * w[..., None]).reshape(F, 2 * V, 3)
     # The rows touch only the clone blocks and the extrinsic: steps 3-6 work on those columns ``cols``
     # of the error state (clone k at 6 k, then the extrinsic), the others are exactly zero.
-    clone_offsets = np.array([st.clone_block(float(t)).offset for t in st.clones])
-    cols = (clone_offsets[:, None] + np.arange(6)).ravel()
-    if has_ext:
-        cols = np.concatenate([cols, st.block(EXTRINSIC_BLOCK).offset + np.arange(6)])
+    cols, clone_offsets = _update_columns(st)
     n_c = len(cols)
     H_x = np.zeros((F, V, 2, n_c))
     H_pose = jac.H_pose * w[..., None]
