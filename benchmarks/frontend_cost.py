@@ -52,14 +52,21 @@ def load_frames(rec: Path, cameras: int, max_frames: int | None) -> tuple[object
 
 
 def make_tracker(ds: object, cameras: int, klt: dict | None = None, stereo: dict | None = None) -> object:
-    """The front end the MSCKF builds: ``KltParams(**klt)``, ``StereoMatchParams(**stereo)``."""
-    from viotb.vio.frontend import KltParams, KltTracker
-    from viotb.vio.frontend_stereo import make_stereo_frontend
-    from viotb.vio.stereo import StereoMatchParams
+    """The front end the MSCKF builds: ``MsckfParams().klt`` and ``.stereo``, with ``klt`` / ``stereo`` set.
 
-    mono = KltTracker(ds.calib.camera, KltParams(**(klt or {})))
+    (Before session 10 the stereo settings were ``StereoMatchParams()``'s, a 21 px window on 3 levels,
+    not the MSCKF's 15 px on 2.)
+    """
+    from dataclasses import replace
+
+    from viotb.vio.frontend import KltTracker
+    from viotb.vio.frontend_stereo import make_stereo_frontend
+    from viotb.vio.msckf_params import MsckfParams
+
+    defaults = MsckfParams()
+    mono = KltTracker(ds.calib.camera, replace(defaults.klt, **(klt or {})))
     right = ds.calib_right if cameras == 2 else None
-    return make_stereo_frontend(mono, ds.calib, right, StereoMatchParams(**(stereo or {})))
+    return make_stereo_frontend(mono, ds.calib, right, replace(defaults.stereo, **(stereo or {})))
 
 
 def _settings(items: list[str]) -> dict:

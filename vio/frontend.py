@@ -167,6 +167,8 @@ class KltParams:
             world lock 5.32 / 3.99 / 2.49 mm on seeds 0-2).
         anchor_zncc_at_final_warp: ``TemplateAnchors.zncc_at_final_warp`` (True, the default: one more
             remap of all patches per frame).
+        anchor_compiled: ``TemplateAnchors.compiled``: the alignment in a compiled kernel (True, the
+            default; README "MSCKF per frame", session 10) or in numpy (the reference).
     """
 
     max_features: int = 180
@@ -194,6 +196,7 @@ class KltParams:
     fb_check_anchored: bool = True
     fb_unchecked_shift_px: float = 0.25
     anchor_zncc_at_final_warp: bool = True
+    anchor_compiled: bool = True
 
 
 class KltTracker:
@@ -232,6 +235,7 @@ class KltTracker:
             projective_after_px=p.anchor_projective_after_px,
             iterations=p.anchor_iterations,
             zncc_at_final_warp=p.anchor_zncc_at_final_warp,
+            compiled=p.anchor_compiled,
         )
 
     def undistort(self, uv_px: np.ndarray) -> np.ndarray:

@@ -31,13 +31,16 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from viotb.vio.klt_math import _inv_2x2, _normalize, singular_values_2x2
+
+__all__ = ["TemplateAnchors", "sample_bilinear", "singular_values_2x2"]
 
 
 def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``image`` at pixel coordinates (pixel centres at integers), ``cv2.remap``.
 
-    OpenCV interpolates with weights on a 1/32 px grid (``INTER_BITS = 5``), so a sample is the bilinear
-    value at the coordinate rounded to 1/32 px; borders are replicated.
+    OpenCV 5 interpolates in float32 at the coordinate itself (OpenCV 4 rounded it to 1/32 px); borders
+    are replicated (:mod:`viotb.vio.frontend_kernels` gives the formula).
 
     Args:
         image: Grayscale float32 image, shape (H, W).
@@ -51,34 +54,6 @@ def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     my = np.ascontiguousarray(y, dtype=np.float32)
     out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(x.shape)
-
-
-def _normalize(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Zero-mean, unit-RMS patches (N, P) and their RMS (N,) (a flat patch gets RMS 0)."""
-    centred = patches - patches.mean(axis=1, keepdims=True)
-    rms = np.sqrt(np.mean(centred * centred, axis=1))
-    return centred / np.maximum(rms, 1e-9)[:, None], rms
-
-
-def _inv_2x2(M: np.ndarray) -> np.ndarray:
-    """Inverses of a stack of 2x2 matrices (N, 2, 2), closed form (the caller keeps them invertible)."""
-    a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
-    out = np.empty_like(M)
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d, -b, -c, a
-    return out / (a * d - b * c)[:, None, None]
-
-
-def singular_values_2x2(M: np.ndarray) -> np.ndarray:
-    """Singular values of a stack of 2x2 matrices (N, 2, 2), largest first, shape (N, 2), closed form.
-
-    ``s1^2, s2^2`` are the eigenvalues of ``M^T M``: ``(f +- sqrt(f^2 - 4 det^2)) / 2`` with ``f`` the squared
-    Frobenius norm.
-    """
-    f = np.sum(M * M, axis=(1, 2))
-    det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
-    root = np.sqrt(np.maximum(f * f - 4.0 * det * det, 0.0))
-    s1 = np.sqrt(0.5 * (f + root))
-    return np.stack([s1, np.abs(det) / np.maximum(s1, 1e-300)], axis=1)
 
 
 class TemplateAnchors:
@@ -118,6 +93,9 @@ class TemplateAnchors:
             patches); False: the ZNCC of the last iteration's samples, at the warp before its step (after
             the first iteration that step is a small fraction of a pixel): the same warps, a remap less
             (``KltParams.anchor_zncc_at_final_warp``, off by default: README "MSCKF per frame").
+        compiled: Align with the compiled kernel :func:`viotb.vio.frontend_kernels.align_templates` (one
+            loop over the tracks, the same steps; positions agree with this module's numpy code, the
+            reference, to round-off); False: the numpy code.
     """
 
     def __init__(
@@ -134,6 +112,7 @@ class TemplateAnchors:
         projective_after_px: float = float("inf"),
         projective_damping: float = 1.0,
         zncc_at_final_warp: bool = True,
+        compiled: bool = True,
     ) -> None:
         """Create an empty template store."""
         r = np.arange(-half_size_px, half_size_px + 1, dtype=float)
@@ -157,6 +136,7 @@ class TemplateAnchors:
         self.projective_after_px = projective_after_px
         self.projective_damping = projective_damping
         self.zncc_at_final_warp = zncc_at_final_warp
+        self.compiled = compiled
         self._projective = bool(np.isfinite(projective_after_px))
         n_px = self._dx.size
         # Slot storage: a track's template lives in one row until its track ends (no copies per frame).
@@ -420,6 +400,35 @@ class TemplateAnchors:
             g[idx] = g_i
         return c, A, g, ok, zncc
 
+    def _align_compiled(
+        self, img: np.ndarray, start: np.ndarray, g: np.ndarray | None, rows: np.ndarray, mode: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+        """:meth:`_align` and the ZNCC of :meth:`refine` in the compiled kernel (same arguments).
+
+        Returns:
+            ``(c (N, 2), A (N, 2, 2), g (N, 2) or None, ok (N,) bool, zncc (N,))``.
+        """
+        from viotb.vio.frontend_kernels import align_templates  # numba: not at import (viotb --help)
+
+        g_in = np.zeros((len(rows), 2)) if g is None else np.ascontiguousarray(g, dtype=float)
+        c, A, g_out, ok, zncc = align_templates(
+            np.ascontiguousarray(img, dtype=np.float32),
+            np.ascontiguousarray(start, dtype=float),
+            np.ascontiguousarray(self._A[rows]),
+            g_in,
+            g is not None,
+            rows.astype(np.int64),
+            mode.astype(np.int64),
+            self._J,
+            self._J_tmpl,
+            self._tmpl,
+            self._r,
+            int(self.iterations),
+            float(self.converged_px),
+            bool(self.zncc_at_final_warp),
+        )
+        return c, A, None if g is None else g_out, ok, zncc
+
     def refine(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Align the templates of ``ids`` into ``image``, starting from the frame-to-frame pixels ``uv_px``.
 
@@ -450,12 +459,17 @@ class TemplateAnchors:
             # A track aligned as a homography once stays one (its warp keeps its projective row).
             mode[(moved >= self.projective_after_px) | np.any(self._g[rows] != 0.0, axis=1)] = 2
             g = self._g[rows] if np.any(mode == 2) else None
-        c, A, g, ok, zncc_last = self._align(img, start, self._A[rows], g, rows, mode)
+        if self.compiled:
+            c, A, g, ok, zncc = self._align_compiled(img, start, g, rows, mode)
+        else:
+            c, A, g, ok, zncc_last = self._align(img, start, self._A[rows], g, rows, mode)
         # Acceptance: the aligned patch still matches, did not slide far, and is not stretched too much.
         idx = np.flatnonzero(ok)
         if len(idx) == 0:
             return uv, anchored
-        if zncc_last is None:
+        if self.compiled:
+            zncc = zncc[idx]
+        elif zncc_last is None:
             warped, _ = _normalize(self._sample(img, c[idx], A[idx], None if g is None else g[idx]))
             zncc = np.mean(warped * self._tmpl[rows[idx]], axis=1)
         else:
