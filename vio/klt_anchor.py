@@ -140,7 +140,7 @@ class TemplateAnchors:
         self._projective = bool(np.isfinite(projective_after_px))
         n_px = self._dx.size
         # Slot storage: a track's template lives in one row until its track ends (no copies per frame).
-        self._slot_of: dict[int, int] = {}
+        self._slot_by_id = np.full(0, -1, dtype=np.int64)  # storage row of each track id, -1: none
         self._free: list[int] = []
         self._tmpl = np.zeros((0, n_px), dtype=np.float32)  # normalized templates (S, P)
         # H^-1 SD^T of the three fits (S, 3, W, P): translation (in rows 4-5), affine (rows 0-5) and
@@ -155,7 +155,7 @@ class TemplateAnchors:
     @property
     def ids(self) -> np.ndarray:
         """Ids of the tracks that have a template, sorted, shape (N,)."""
-        return np.array(sorted(self._slot_of), dtype=np.int64)
+        return np.flatnonzero(self._slot_by_id >= 0).astype(np.int64)
 
     _STORES = ("_tmpl", "_J", "_J_tmpl", "_A", "_g", "_uv0")
 
@@ -168,7 +168,16 @@ class TemplateAnchors:
                 arr = getattr(self, name)
                 setattr(self, name, np.concatenate([arr, np.zeros((grow, *arr.shape[1:]), dtype=arr.dtype)]))
             self._free.extend(range(old + grow - 1, old - 1, -1))
-        return np.array([self._free.pop() for _ in range(n)], dtype=np.int64)
+        taken = self._free[len(self._free) - n :][::-1]  # the last n, last first (as n pops)
+        del self._free[len(self._free) - n :]
+        return np.array(taken, dtype=np.int64)
+
+    def _lookup(self, ids: np.ndarray) -> np.ndarray:
+        """Storage rows of track ids (N,) (-1 where a track has no template)."""
+        found = np.full(len(ids), -1, dtype=np.int64)
+        known = (ids >= 0) & (ids < len(self._slot_by_id))
+        found[known] = self._slot_by_id[ids[known]]
+        return found
 
     def _inside(self, image: np.ndarray, uv: np.ndarray, margin: float) -> np.ndarray:
         h, w = image.shape
@@ -278,20 +287,24 @@ class TemplateAnchors:
         self._g[slots] = 0.0
         self._A[slots] = np.eye(2)
         self._uv0[slots] = uv[keep]
-        for tid, slot in zip(ids[keep].tolist(), slots.tolist(), strict=True):
-            self._slot_of[tid] = slot
+        kept = ids[keep]
+        if kept.max() >= len(self._slot_by_id):
+            grow = max(int(kept.max()) + 1, 2 * len(self._slot_by_id), 256) - len(self._slot_by_id)
+            self._slot_by_id = np.concatenate([self._slot_by_id, np.full(grow, -1, dtype=np.int64)])
+        self._slot_by_id[kept] = slots
 
     def drop(self, ids: np.ndarray) -> None:
         """Forget the templates of ``ids`` (absent ids are ignored)."""
-        for tid in np.asarray(ids, dtype=np.int64).tolist():
-            slot = self._slot_of.pop(tid, None)
-            if slot is not None:
-                self._free.append(slot)
+        ids = np.unique(np.asarray(ids, dtype=np.int64))
+        found = self._lookup(ids)
+        have = found >= 0
+        self._slot_by_id[ids[have]] = -1
+        self._free.extend(found[have].tolist())
 
     def keep_only(self, ids: np.ndarray) -> None:
         """Forget every template whose track is not in ``ids`` (the tracks that ended)."""
-        live = set(np.asarray(ids, dtype=np.int64).tolist())
-        self.drop(np.array([tid for tid in self._slot_of if tid not in live], dtype=np.int64))
+        have = self.ids
+        self.drop(have[~np.isin(have, np.asarray(ids, dtype=np.int64))])
 
     @staticmethod
     def _compose_projective(A: np.ndarray, g: np.ndarray, dp: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -444,8 +457,7 @@ class TemplateAnchors:
         uv = np.asarray(uv_px, dtype=float).reshape(-1, 2).copy()
         ids = np.asarray(ids, dtype=np.int64)
         anchored = np.zeros(len(ids), dtype=bool)
-        slot_of = self._slot_of
-        found = np.array([slot_of.get(tid, -1) for tid in ids.tolist()], dtype=np.int64)
+        found = self._lookup(ids)
         which = np.flatnonzero(found >= 0)
         rows = found[which]
         if len(rows) == 0:
