@@ -116,3 +116,18 @@ def test_klt_tracker_with_compiled_anchoring_keeps_the_numpy_tracks_on_euroc():
         np.testing.assert_array_equal(new.ids, ref.ids)
         np.testing.assert_allclose(new.uv_px, ref.uv_px, rtol=0.0, atol=1e-3)
     assert len(tracks[True][-1]) > 50
+
+
+@pytest.mark.skipif(not (EUROC_MICRO / "mav0").is_dir(), reason="EuRoC micro set not found")
+def test_parallel_anchoring_gives_the_sequential_tracks_bit_for_bit():
+    """Anchoring in a second thread during the backward pass (``KltParams.parallel_anchoring``)."""
+    bench = load_repo_script("benchmarks/frontend_cost.py")
+    ds, frames = bench.load_frames(EUROC_MICRO, cameras=1, max_frames=12)
+    tracks = {}
+    for parallel in (False, True):
+        tracker = KltTracker(ds.calib.camera, KltParams(parallel_anchoring=parallel))
+        tracks[parallel] = [tracker.process(f, f.t_s) for f in frames]
+    for seq, par in zip(tracks[False], tracks[True], strict=True):
+        np.testing.assert_array_equal(par.ids, seq.ids)
+        np.testing.assert_array_equal(par.uv_px, seq.uv_px)
+    assert len(tracks[True][-1]) > 50

@@ -10,9 +10,10 @@ The bilinear sample is OpenCV 5's ``cv2.remap`` (``INTER_LINEAR``, ``BORDER_REPL
 measured on this build: ``v0 = fma(fx, p01 - p00, p00)``, ``v1 = fma(fx, p11 - p10, p10)``, ``v = fma(fy,
 v1 - v0, v0)`` in float32 with ``fx = x - floor(x)`` (no 1/32 px quantization); the fused multiply-adds are
 taken in float64 and rounded once to float32. The patch coordinates are built in float32 as the numpy
-version builds them, so the samples agree bit for bit where OpenCV uses that formula; the sums (patch mean,
-dot products) are taken in float64 here and in float32 pairwise by numpy, so the aligned positions agree to
-round-off (``tests/test_frontend_kernels.py``).
+version builds them (each track by its own fit's formula; numpy builds a whole batch by the homography's
+once one track in it is a homography), so the samples agree bit for bit where OpenCV uses that formula.
+The sums (patch mean, dot products) are taken in float64 here and in float32 pairwise by numpy, so the
+aligned positions agree to round-off (``tests/test_frontend_kernels.py``).
 """
 
 from __future__ import annotations
@@ -142,7 +143,6 @@ def align_templates(
     c_start: np.ndarray,
     A_start: np.ndarray,
     g_start: np.ndarray,
-    use_g: bool,
     rows: np.ndarray,
     mode: np.ndarray,
     J_store: np.ndarray,
@@ -159,8 +159,7 @@ def align_templates(
         image: float32 image (H, W).
         c_start: Start centres (px), shape (N, 2).
         A_start: Start linear warps, shape (N, 2, 2).
-        g_start: Start projective rows (1/px), shape (N, 2) (zeros when ``use_g`` is False).
-        use_g: Whether any track of the batch is a homography (the numpy version's ``g is not None``).
+        g_start: Start projective rows (1/px), shape (N, 2) (read for the homography tracks only).
         rows: Storage rows of the templates, shape (N,).
         mode: Fit of each track (N,): 0 translation, 1 affine, 2 homography.
         J_store: ``H^-1 SD^T`` of every slot, shape (S, 3, W, P) float32 (W = 6 or 8).
@@ -179,7 +178,6 @@ def align_templates(
     h, w = image.shape
     half = (r.shape[0] - 1) // 2
     n_px = r.shape[0] * r.shape[0]
-    width = 8 if use_g else 6
     c = c_start.copy()
     A = A_start.copy()
     g = g_start.copy()
@@ -196,12 +194,16 @@ def align_templates(
             continue
         ok[k] = True
         row, m = rows[k], mode[k]
+        # Each track on its own fit's path: the numpy version builds every patch of a batch that holds
+        # a homography with the homography's formula (the same coordinates up to float32 rounding), so
+        # here a track's result does not depend on the other tracks of its batch.
         proj = m == 2
+        width = 8 if proj else 6
         c_i[:] = c[k]
         A_i[:, :] = A[k]
         g_i[:] = g[k]
         for _ in range(iterations):
-            sample_patch(image, c_i, A_i, g_i, use_g, r, patch)
+            sample_patch(image, c_i, A_i, g_i, proj, r, patch)
             total = 0.0
             for p in range(n_px):
                 total += patch[p]
@@ -233,7 +235,7 @@ def align_templates(
             if not math.hypot(dp[4], dp[5]) > converged_px:
                 break
         if ok[k] and zncc_at_final_warp:
-            sample_patch(image, c[k], A[k], g[k], use_g, r, patch)
+            sample_patch(image, c[k], A[k], g[k], proj, r, patch)
             total_f = 0.0
             for p in range(n_px):
                 total_f += patch[p]

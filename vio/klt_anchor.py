@@ -429,7 +429,6 @@ class TemplateAnchors:
             np.ascontiguousarray(start, dtype=float),
             np.ascontiguousarray(self._A[rows]),
             g_in,
-            g is not None,
             rows.astype(np.int64),
             mode.astype(np.int64),
             self._J,
