@@ -2,25 +2,23 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import cv2
 import numpy as np
 from viotb.vio.camera import PinholeCamera
 
-if TYPE_CHECKING:
-    from viotb.vio.frontend import KltParams
-
 
 def detect_corners(
-    fast: cv2.FastFeatureDetector, camera: PinholeCamera, p: KltParams, img: np.ndarray, pts: np.ndarray
+    fast: cv2.FastFeatureDetector, camera: PinholeCamera, p: Any, img: np.ndarray, pts: np.ndarray
 ) -> np.ndarray:
     """New FAST corners of ``KltTracker``, bucketed on a grid and away from the tracked points.
 
     Args:
         fast: The FAST detector.
         camera: Intrinsics (the image border).
-        p: Tracker settings (``max_features``, ``min_distance_px``, the grid, ``border_px``).
+        p: Tracker settings, a ``KltParams`` (``max_features``, ``min_distance_px``, the grid,
+            ``border_px``; not imported here: :mod:`viotb.vio.frontend` imports this module).
         img: Grayscale uint8 image (H, W).
         pts: Tracked pixels, shape (M, 2).
 
