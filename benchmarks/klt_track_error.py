@@ -22,12 +22,13 @@ image motion of the feature per frame (does the slide follow motion or time?).
 Usage::
 
     python benchmarks/klt_track_error.py RECORDING_DIR SCENARIO [--max-frames N] [--json] [--anchor]
-        [--projective-after-px PX]
+        [--projective-after-px PX] [--klt FIELD=VALUE ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import os
 from pathlib import Path
@@ -48,6 +49,7 @@ def track_errors(
     edge_px: float = 3.0,
     anchor: bool = False,
     projective_after_px: float = float("inf"),
+    klt: dict | None = None,
 ) -> tuple[dict[int, np.ndarray], dict[int, float]]:
     """KLT error of every track against the true projection of its first 3-D point.
 
@@ -58,6 +60,7 @@ def track_errors(
         edge_px: Offset (px) of the four neighbour rays that measure the depth step around a first point.
         anchor: Track with ``KltParams.anchor_templates`` (drift correction against the first template).
         projective_after_px: ``KltParams.anchor_projective_after_px`` (homography alignment of the anchors).
+        klt: Other ``KltParams`` fields (e.g. ``{"anchor_zncc_at_final_warp": True}``).
 
     Returns:
         ``(errors, depth_step)``: track id -> array (n, 8) of frame index, e_u, e_v (px), u, v of the KLT
@@ -83,7 +86,8 @@ def track_errors(
     body = mujoco.mj_name2id(sim.model, mujoco.mjtObj.mjOBJ_BODY, VEHICLE_BODIES[sc.vehicle])
     mujoco.mj_forward(sim.model, sim.data)
     cam = ds.calib.camera
-    trk = KltTracker(cam, KltParams(anchor_templates=anchor, anchor_projective_after_px=projective_after_px))
+    settings = {"anchor_templates": anchor, "anchor_projective_after_px": projective_after_px, **(klt or {})}
+    trk = KltTracker(cam, KltParams(**settings))
     n = len(ds.cam_t_s) if max_frames is None else min(max_frames, len(ds.cam_t_s))
     point: dict[int, np.ndarray | None] = {}
     normal: dict[int, np.ndarray] = {}
@@ -328,9 +332,16 @@ def main() -> None:
         default=float("inf"),
         help="KltParams.anchor_projective_after_px (homography anchors; default inf: affine)",
     )
+    ap.add_argument("--klt", action="append", default=[], help="other KltParams field=value (repeatable)")
     a = ap.parse_args()
+    klt = {k: ast.literal_eval(v) for k, _, v in (item.partition("=") for item in a.klt)}
     errors, depth_step = track_errors(
-        a.recording, a.scenario, a.max_frames, anchor=a.anchor, projective_after_px=a.projective_after_px
+        a.recording,
+        a.scenario,
+        a.max_frames,
+        anchor=a.anchor,
+        projective_after_px=a.projective_after_px,
+        klt=klt,
     )
     res = fit_noise(errors)
     res["core"] = fit_core(errors)

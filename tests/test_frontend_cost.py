@@ -14,8 +14,8 @@ def test_frontend_cost_times_the_msckf_tracker_and_its_digest_is_repeatable():
     bench = load_repo_script("benchmarks/frontend_cost.py")
     ds, frames = bench.load_frames(EUROC_MICRO, cameras=1, max_frames=12)
     assert len(frames) == 12 and frames[0].image is not None
-    cpu, digests, counts, starts = bench.run_once(ds, frames, 1)
-    assert np.all(np.isfinite(cpu)) and np.all(cpu > 0.0)
+    cpu, digests, counts, starts, wall = bench.run_once(ds, frames, 1)
+    assert np.all(np.isfinite(cpu)) and np.all(cpu > 0.0) and np.all(wall > 0.0)
     assert counts[-1, 0] > 50 and np.all(counts[:, 1] == 0)  # mono: no cam1 observations
     assert starts >= counts[-1, 0]
     again = bench.run_once(ds, frames, 1)[1]

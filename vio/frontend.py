@@ -13,6 +13,7 @@ per clone time and camera in fixed arrays and answers time-based queries (:mod:`
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -21,6 +22,7 @@ import numpy as np
 from viotb.vio.camera import PinholeCamera
 from viotb.vio.feature_database import FeatureDatabase
 from viotb.vio.klt_anchor import TemplateAnchors
+from viotb.vio.klt_detect import detect_corners
 from viotb.vio.types import CameraFrame
 
 __all__ = [
@@ -167,6 +169,12 @@ class KltParams:
             world lock 5.32 / 3.99 / 2.49 mm on seeds 0-2).
         anchor_zncc_at_final_warp: ``TemplateAnchors.zncc_at_final_warp`` (True, the default: one more
             remap of all patches per frame).
+        anchor_compiled: ``TemplateAnchors.compiled``: the alignment in a compiled kernel (True, the
+            default; README "MSCKF per frame", session 10) or in numpy (the reference).
+        parallel_anchoring: With ``fb_check_anchored`` and ``anchor_compiled``: anchor every track the
+            forward pass kept in a second thread during the backward pass (both release the GIL), then keep
+            those the check kept: the kernel aligns each track on its own and a dropped track ends, so the
+            tracks are the sequential ones. Saves wall time, not CPU.
     """
 
     max_features: int = 180
@@ -194,6 +202,8 @@ class KltParams:
     fb_check_anchored: bool = True
     fb_unchecked_shift_px: float = 0.25
     anchor_zncc_at_final_warp: bool = True
+    anchor_compiled: bool = True
+    parallel_anchoring: bool = True
 
 
 class KltTracker:
@@ -220,6 +230,7 @@ class KltTracker:
         self._dist = np.array(camera.distortion, dtype=float)
         self._undistort_criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
         self._anchors = self._new_anchors()
+        self._executor: ThreadPoolExecutor | None = None
 
     def _new_anchors(self) -> TemplateAnchors | None:
         p = self.params
@@ -232,6 +243,7 @@ class KltTracker:
             projective_after_px=p.anchor_projective_after_px,
             iterations=p.anchor_iterations,
             zncc_at_final_warp=p.anchor_zncc_at_final_warp,
+            compiled=p.anchor_compiled,
         )
 
     def undistort(self, uv_px: np.ndarray) -> np.ndarray:
@@ -317,6 +329,10 @@ class KltTracker:
                 anchored[fwd] = ok
         # Backward pass only for the points the forward pass kept (LK tracks each point on its own).
         fwd = np.flatnonzero(good & ~unchecked)
+        ahead = None  # the anchoring of every forward-kept track, running beside the backward pass
+        if p.fb_check_anchored and p.parallel_anchoring and p.anchor_compiled and len(fwd):
+            if self._anchors is not None:
+                ahead = self._pool().submit(self._anchors.refine, img_f32, self._prev_ids[fwd], p1[fwd])
         if len(fwd):
             back = {
                 "winSize": (p.fb_win_size_px, p.fb_win_size_px),
@@ -333,7 +349,11 @@ class KltTracker:
             good[fwd] = (st2.ravel() == 1) & (fb < p.fb_max_error_px)
         pts, ids, xy_prev = p1[good], self._prev_ids[good], self._prev_xy[good]
         fresh = np.zeros(len(pts), dtype=bool) if self._anchors is None else ~anchored[good]
-        if self._anchors is not None and p.fb_check_anchored and len(pts):
+        if ahead is not None:
+            refined, ok = ahead.result()
+            kept = good[fwd]
+            pts, fresh = refined[kept].astype(np.float32), ~ok[kept]
+        elif self._anchors is not None and p.fb_check_anchored and len(pts):
             refined, ok = self._anchors.refine(img_f32, ids, pts)
             pts, fresh = refined.astype(np.float32), ~ok
         xy = self.undistort(pts)
@@ -346,60 +366,15 @@ class KltTracker:
                 pts, ids, xy, fresh = pts[keep], ids[keep], xy[keep], fresh[keep]
         return pts, ids, xy, fresh
 
+    def _pool(self) -> ThreadPoolExecutor:
+        """The tracker's one worker thread (created on first use)."""
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="klt-anchor")
+        return self._executor
+
     def _detect(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """New FAST corners, bucketed on a grid and away from tracked points, shape (N, 2) float32."""
-        p = self.params
-        need = p.max_features - len(pts)
-        if need <= 0:
-            return np.zeros((0, 2), dtype=np.float32)
-        kps = self._fast.detect(img, None)
-        if not kps:
-            return np.zeros((0, 2), dtype=np.float32)
-        cand = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
-        h, w = img.shape
-        inside = self.camera.in_image(cand.astype(float), p.border_px + 4)
-        # Occupancy at min_distance resolution: reject candidates whose cell (or a neighbour) holds a feature.
-        cell = max(p.min_distance_px, 1.0)
-        gw, gh = int(np.ceil(w / cell)) + 2, int(np.ceil(h / cell)) + 2
-        occ = np.zeros((gh, gw), dtype=bool)
-        if len(pts):
-            ci = np.clip((pts[:, 0] / cell).astype(int) + 1, 1, gw - 2)
-            cj = np.clip((pts[:, 1] / cell).astype(int) + 1, 1, gh - 2)
-            for dj in (-1, 0, 1):
-                for di in (-1, 0, 1):
-                    occ[cj + dj, ci + di] = True
-        ki = np.clip((cand[:, 0] / cell).astype(int) + 1, 0, gw - 1)
-        kj = np.clip((cand[:, 1] / cell).astype(int) + 1, 0, gh - 1)
-        ok = np.flatnonzero(inside & ~occ[kj, ki])
-        cand, ki, kj = cand[ok], ki[ok], kj[ok]
-        # Responses only of the candidates kept (reading a KeyPoint costs a Python call each).
-        resp = np.fromiter((kps[i].response for i in ok), dtype=np.float32, count=len(ok))
-        if len(cand) == 0:
-            return np.zeros((0, 2), dtype=np.float32)
-        # One corner per occupancy cell (the strongest), then a per-bucket quota.
-        order = np.lexsort((-resp, kj * gw + ki))
-        cell_id = (kj * gw + ki)[order]
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = cell_id[1:] != cell_id[:-1]
-        sel = order[first]
-        cand, resp = cand[sel], resp[sel]
-        bx = np.clip((cand[:, 0] * p.grid_cols / w).astype(int), 0, p.grid_cols - 1)
-        by = np.clip((cand[:, 1] * p.grid_rows / h).astype(int), 0, p.grid_rows - 1)
-        bucket = by * p.grid_cols + bx
-        n_buckets = p.grid_cols * p.grid_rows
-        quota = int(np.ceil(p.max_features / n_buckets))
-        have = np.zeros(n_buckets, dtype=int)
-        if len(pts):
-            tbx = np.clip((pts[:, 0] * p.grid_cols / w).astype(int), 0, p.grid_cols - 1)
-            tby = np.clip((pts[:, 1] * p.grid_rows / h).astype(int), 0, p.grid_rows - 1)
-            have = np.bincount(tby * p.grid_cols + tbx, minlength=n_buckets)
-        order = np.lexsort((-resp, bucket))
-        b_sorted = bucket[order]
-        starts = np.searchsorted(b_sorted, np.arange(n_buckets))
-        rank = np.arange(len(order)) - starts[b_sorted]
-        take = order[rank < np.maximum(quota - have[b_sorted], 0)]
-        take = take[np.argsort(-resp[take])][:need]
-        return cand[take]
+        return detect_corners(self._fast, self.camera, self.params, img, pts)
 
     def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
         """Track into ``frame.image``; an absent/empty or featureless image yields zero tracks.

@@ -63,7 +63,9 @@ class StereoTracker:
         self.calib0 = calib0
         self.calib1 = calib1
         self.params = params if params is not None else StereoMatchParams()
-        self._depth_m: dict[int, float] = {}
+        # The tracks matched in the previous frame (ids sorted) and their stereo depths (m).
+        self._prior_ids = np.zeros(0, dtype=np.int64)
+        self._prior_depth_m = np.zeros(0)
 
     def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
         """Track cam0 with the wrapped front end, then add this frame's cam1 observations.
@@ -81,14 +83,19 @@ class StereoTracker:
     def _match_images(self, frame: CameraFrame, tracks: Tracks) -> Tracks:
         cam0, cam1 = self.calib0.camera, self.calib1.camera
         if len(tracks) == 0:
-            self._depth_m = {}
+            self._prior_ids, self._prior_depth_m = np.zeros(0, dtype=np.int64), np.zeros(0)
             return tracks
         img0 = _gray(frame.image, (cam0.height, cam0.width), "left")
         img1 = _gray(frame.image_right, (cam1.height, cam1.width), "right")
         ids = tracks.ids
-        prior = np.array([self._depth_m.get(int(i), np.nan) for i in ids.tolist()])
+        prior = np.full(len(ids), np.nan)
+        if len(self._prior_ids):
+            pos = np.minimum(np.searchsorted(self._prior_ids, ids), len(self._prior_ids) - 1)
+            hit = self._prior_ids[pos] == ids
+            prior[hit] = self._prior_depth_m[pos[hit]]
         m = match_stereo(img0, img1, tracks.uv_px, self.calib0, self.calib1, self.params, prior)
-        self._depth_m = {int(i): float(d) for i, d in zip(ids[m.mask], m.depth_m[m.mask], strict=True)}
+        order = np.argsort(ids[m.mask], kind="stable")
+        self._prior_ids, self._prior_depth_m = ids[m.mask][order], m.depth_m[m.mask][order]
         uv1 = m.uv1_px[m.mask]
         xy1 = cam1.undistort_points(uv1) if len(uv1) else np.zeros((0, 2))
         return replace(tracks, ids_right=ids[m.mask].copy(), xy_norm_right=xy1, uv_px_right=uv1)

@@ -31,13 +31,16 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from viotb.vio.klt_math import _inv_2x2, _normalize, singular_values_2x2
+
+__all__ = ["TemplateAnchors", "sample_bilinear", "singular_values_2x2"]
 
 
 def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``image`` at pixel coordinates (pixel centres at integers), ``cv2.remap``.
 
-    OpenCV interpolates with weights on a 1/32 px grid (``INTER_BITS = 5``), so a sample is the bilinear
-    value at the coordinate rounded to 1/32 px; borders are replicated.
+    OpenCV 5 interpolates in float32 at the coordinate itself (OpenCV 4 rounded it to 1/32 px); borders
+    are replicated (:mod:`viotb.vio.frontend_kernels` gives the formula).
 
     Args:
         image: Grayscale float32 image, shape (H, W).
@@ -51,34 +54,6 @@ def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     my = np.ascontiguousarray(y, dtype=np.float32)
     out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(x.shape)
-
-
-def _normalize(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Zero-mean, unit-RMS patches (N, P) and their RMS (N,) (a flat patch gets RMS 0)."""
-    centred = patches - patches.mean(axis=1, keepdims=True)
-    rms = np.sqrt(np.mean(centred * centred, axis=1))
-    return centred / np.maximum(rms, 1e-9)[:, None], rms
-
-
-def _inv_2x2(M: np.ndarray) -> np.ndarray:
-    """Inverses of a stack of 2x2 matrices (N, 2, 2), closed form (the caller keeps them invertible)."""
-    a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
-    out = np.empty_like(M)
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d, -b, -c, a
-    return out / (a * d - b * c)[:, None, None]
-
-
-def singular_values_2x2(M: np.ndarray) -> np.ndarray:
-    """Singular values of a stack of 2x2 matrices (N, 2, 2), largest first, shape (N, 2), closed form.
-
-    ``s1^2, s2^2`` are the eigenvalues of ``M^T M``: ``(f +- sqrt(f^2 - 4 det^2)) / 2`` with ``f`` the squared
-    Frobenius norm.
-    """
-    f = np.sum(M * M, axis=(1, 2))
-    det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
-    root = np.sqrt(np.maximum(f * f - 4.0 * det * det, 0.0))
-    s1 = np.sqrt(0.5 * (f + root))
-    return np.stack([s1, np.abs(det) / np.maximum(s1, 1e-300)], axis=1)
 
 
 class TemplateAnchors:
@@ -118,6 +93,9 @@ class TemplateAnchors:
             patches); False: the ZNCC of the last iteration's samples, at the warp before its step (after
             the first iteration that step is a small fraction of a pixel): the same warps, a remap less
             (``KltParams.anchor_zncc_at_final_warp``, off by default: README "MSCKF per frame").
+        compiled: Align with the compiled kernel :func:`viotb.vio.frontend_kernels.align_templates` (one
+            loop over the tracks, the same steps; positions agree with this module's numpy code, the
+            reference, to round-off); False: the numpy code.
     """
 
     def __init__(
@@ -134,6 +112,7 @@ class TemplateAnchors:
         projective_after_px: float = float("inf"),
         projective_damping: float = 1.0,
         zncc_at_final_warp: bool = True,
+        compiled: bool = True,
     ) -> None:
         """Create an empty template store."""
         r = np.arange(-half_size_px, half_size_px + 1, dtype=float)
@@ -157,10 +136,11 @@ class TemplateAnchors:
         self.projective_after_px = projective_after_px
         self.projective_damping = projective_damping
         self.zncc_at_final_warp = zncc_at_final_warp
+        self.compiled = compiled
         self._projective = bool(np.isfinite(projective_after_px))
         n_px = self._dx.size
         # Slot storage: a track's template lives in one row until its track ends (no copies per frame).
-        self._slot_of: dict[int, int] = {}
+        self._slot_by_id = np.full(0, -1, dtype=np.int64)  # storage row of each track id, -1: none
         self._free: list[int] = []
         self._tmpl = np.zeros((0, n_px), dtype=np.float32)  # normalized templates (S, P)
         # H^-1 SD^T of the three fits (S, 3, W, P): translation (in rows 4-5), affine (rows 0-5) and
@@ -175,7 +155,7 @@ class TemplateAnchors:
     @property
     def ids(self) -> np.ndarray:
         """Ids of the tracks that have a template, sorted, shape (N,)."""
-        return np.array(sorted(self._slot_of), dtype=np.int64)
+        return np.flatnonzero(self._slot_by_id >= 0).astype(np.int64)
 
     _STORES = ("_tmpl", "_J", "_J_tmpl", "_A", "_g", "_uv0")
 
@@ -188,7 +168,16 @@ class TemplateAnchors:
                 arr = getattr(self, name)
                 setattr(self, name, np.concatenate([arr, np.zeros((grow, *arr.shape[1:]), dtype=arr.dtype)]))
             self._free.extend(range(old + grow - 1, old - 1, -1))
-        return np.array([self._free.pop() for _ in range(n)], dtype=np.int64)
+        taken = self._free[len(self._free) - n :][::-1]  # the last n, last first (as n pops)
+        del self._free[len(self._free) - n :]
+        return np.array(taken, dtype=np.int64)
+
+    def _lookup(self, ids: np.ndarray) -> np.ndarray:
+        """Storage rows of track ids (N,) (-1 where a track has no template)."""
+        found = np.full(len(ids), -1, dtype=np.int64)
+        known = (ids >= 0) & (ids < len(self._slot_by_id))
+        found[known] = self._slot_by_id[ids[known]]
+        return found
 
     def _inside(self, image: np.ndarray, uv: np.ndarray, margin: float) -> np.ndarray:
         h, w = image.shape
@@ -298,20 +287,24 @@ class TemplateAnchors:
         self._g[slots] = 0.0
         self._A[slots] = np.eye(2)
         self._uv0[slots] = uv[keep]
-        for tid, slot in zip(ids[keep].tolist(), slots.tolist(), strict=True):
-            self._slot_of[tid] = slot
+        kept = ids[keep]
+        if kept.max() >= len(self._slot_by_id):
+            grow = max(int(kept.max()) + 1, 2 * len(self._slot_by_id), 256) - len(self._slot_by_id)
+            self._slot_by_id = np.concatenate([self._slot_by_id, np.full(grow, -1, dtype=np.int64)])
+        self._slot_by_id[kept] = slots
 
     def drop(self, ids: np.ndarray) -> None:
         """Forget the templates of ``ids`` (absent ids are ignored)."""
-        for tid in np.asarray(ids, dtype=np.int64).tolist():
-            slot = self._slot_of.pop(tid, None)
-            if slot is not None:
-                self._free.append(slot)
+        ids = np.unique(np.asarray(ids, dtype=np.int64))
+        found = self._lookup(ids)
+        have = found >= 0
+        self._slot_by_id[ids[have]] = -1
+        self._free.extend(found[have].tolist())
 
     def keep_only(self, ids: np.ndarray) -> None:
         """Forget every template whose track is not in ``ids`` (the tracks that ended)."""
-        live = set(np.asarray(ids, dtype=np.int64).tolist())
-        self.drop(np.array([tid for tid in self._slot_of if tid not in live], dtype=np.int64))
+        have = self.ids
+        self.drop(have[~np.isin(have, np.asarray(ids, dtype=np.int64))])
 
     @staticmethod
     def _compose_projective(A: np.ndarray, g: np.ndarray, dp: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -420,6 +413,34 @@ class TemplateAnchors:
             g[idx] = g_i
         return c, A, g, ok, zncc
 
+    def _align_compiled(
+        self, img: np.ndarray, start: np.ndarray, g: np.ndarray | None, rows: np.ndarray, mode: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+        """:meth:`_align` and the ZNCC of :meth:`refine` in the compiled kernel (same arguments).
+
+        Returns:
+            ``(c (N, 2), A (N, 2, 2), g (N, 2) or None, ok (N,) bool, zncc (N,))``.
+        """
+        from viotb.vio.frontend_kernels import align_templates  # numba: not at import (viotb --help)
+
+        g_in = np.zeros((len(rows), 2)) if g is None else np.ascontiguousarray(g, dtype=float)
+        c, A, g_out, ok, zncc = align_templates(
+            np.ascontiguousarray(img, dtype=np.float32),
+            np.ascontiguousarray(start, dtype=float),
+            np.ascontiguousarray(self._A[rows]),
+            g_in,
+            rows.astype(np.int64),
+            mode.astype(np.int64),
+            self._J,
+            self._J_tmpl,
+            self._tmpl,
+            self._r,
+            int(self.iterations),
+            float(self.converged_px),
+            bool(self.zncc_at_final_warp),
+        )
+        return c, A, None if g is None else g_out, ok, zncc
+
     def refine(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Align the templates of ``ids`` into ``image``, starting from the frame-to-frame pixels ``uv_px``.
 
@@ -435,8 +456,7 @@ class TemplateAnchors:
         uv = np.asarray(uv_px, dtype=float).reshape(-1, 2).copy()
         ids = np.asarray(ids, dtype=np.int64)
         anchored = np.zeros(len(ids), dtype=bool)
-        slot_of = self._slot_of
-        found = np.array([slot_of.get(tid, -1) for tid in ids.tolist()], dtype=np.int64)
+        found = self._lookup(ids)
         which = np.flatnonzero(found >= 0)
         rows = found[which]
         if len(rows) == 0:
@@ -450,12 +470,17 @@ class TemplateAnchors:
             # A track aligned as a homography once stays one (its warp keeps its projective row).
             mode[(moved >= self.projective_after_px) | np.any(self._g[rows] != 0.0, axis=1)] = 2
             g = self._g[rows] if np.any(mode == 2) else None
-        c, A, g, ok, zncc_last = self._align(img, start, self._A[rows], g, rows, mode)
+        if self.compiled:
+            c, A, g, ok, zncc = self._align_compiled(img, start, g, rows, mode)
+        else:
+            c, A, g, ok, zncc_last = self._align(img, start, self._A[rows], g, rows, mode)
         # Acceptance: the aligned patch still matches, did not slide far, and is not stretched too much.
         idx = np.flatnonzero(ok)
         if len(idx) == 0:
             return uv, anchored
-        if zncc_last is None:
+        if self.compiled:
+            zncc = zncc[idx]
+        elif zncc_last is None:
             warped, _ = _normalize(self._sample(img, c[idx], A[idx], None if g is None else g[idx]))
             zncc = np.mean(warped * self._tmpl[rows[idx]], axis=1)
         else:
