@@ -399,9 +399,7 @@ def msckf_update(
     # 6. Stack, compress (QR) and update.
     if p.update_kernels == "numba":
         # The kernel summed the passed features' normal equations: factor them (measurement_compress).
-        if Pi is not None:
-            gram, h_r = Pi @ gram @ Pi, Pi @ h_r
-        H_c, r_c = gram_compress(gram, h_r)
+        H_c, r_c = gram_compress(gram, h_r, Pi)
     else:
         if n_pass == F:
             H_all, r_all = H_o.reshape(-1, n_c), r_o.reshape(-1)

@@ -149,22 +149,25 @@ def measurement_compress(
     m, n = H.shape
     if m <= n:
         return (H, r) if right is None else (H @ right, r)
-    gram, h_r = H.T @ H, H.T @ r
-    if right is not None:
-        gram, h_r = right @ gram @ right, right @ h_r
-    return gram_compress(gram, h_r)
+    return gram_compress(H.T @ H, H.T @ r, right)
 
 
-def gram_compress(gram: np.ndarray, h_r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def gram_compress(
+    gram: np.ndarray, h_r: np.ndarray, right: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`measurement_compress` from the normal equations: ``T^T T = gram`` and ``T^T r_c = h_r``.
 
     Args:
         gram: ``H^T H``, shape (n, n), symmetric positive semidefinite.
         h_r: ``H^T r``, shape (n,).
+        right: Optional symmetric matrix, shape (n, n), applied to ``H`` from the right (the system
+            compressed is then ``(H right, r)``: Gram matrix ``right H^T H right``, ``right H^T r``).
 
     Returns:
         ``(T, r_c)`` with the numerical rank's rows (pivoted Cholesky, as :func:`measurement_compress`).
     """
+    if right is not None:
+        gram, h_r = right @ gram @ right, right @ h_r
     n = gram.shape[0]
     scale = float(np.max(np.diag(gram))) if n else 0.0
     if not scale > 0.0:
