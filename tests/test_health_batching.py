@@ -1,7 +1,8 @@
 """The health monitor's deferred windows (vio/health.py) against the eager monitor they replaced.
 
-The monitor fills its excitation windows only when a test reads them (and before each frame) and computes
-the gyro norm and the world acceleration only when the tests before them hold. ``_EagerMonitor`` below is
+The monitor fills its excitation windows only when a test reads them (the IMU window also at each frame;
+the world accelerations wait, with their attitude, past frames) and computes the gyro norm and the world
+acceleration only when the tests before them hold. ``_EagerMonitor`` below is
 the former code, kept as the reference: it flushes every buffered sample into both windows at every
 excitation check and computes both statistics there. On random streams that move, stop, rotate, lose
 their estimate and jump in time, both must raise the same conditions at the same times with the same
@@ -76,6 +77,9 @@ class _EagerMonitor(HealthMonitor):
         a_W = np.einsum("nij,nj->ni", R_all, accel - b_a) - np.array([0.0, 0.0, GRAVITY_M_S2])
         self._accel_W.extend(t, a_W)
 
+    def _defer_accel(self) -> None:
+        self._flush_imu()  # the former frame: every buffered sample into both windows at once
+
     def _check_excitation(self, t: float) -> None:
         p = self.params
         window_full = len(self._accel_W) > 0 and t - self._accel_W.t[0] >= 0.99 * p.excitation_window_s
@@ -146,6 +150,22 @@ def _stream(seed: int, seconds: float = 24.0):
     return calls
 
 
+class _Recorded:
+    """Records every world-acceleration RMS a monitor computes, keyed by the call it was computed in."""
+
+    def __init__(self, mon: HealthMonitor) -> None:
+        self.call = 0
+        self.values: dict[int, tuple[float, bytes, bytes]] = {}
+        compute = mon._world_accel_rms
+
+        def recorded() -> float:
+            value = compute()
+            self.values[self.call] = (value, mon._accel_W.t.tobytes(), mon._accel_W.x.tobytes())
+            return value
+
+        mon._world_accel_rms = recorded
+
+
 def _state(mon: HealthMonitor) -> tuple:
     return (
         [(c.name, c.t_s_first, c.evidence) for c in mon.report()],
@@ -162,7 +182,9 @@ def _state(mon: HealthMonitor) -> tuple:
 def test_deferred_windows_match_the_eager_monitor(seed: int, params: HealthParams) -> None:
     fast, ref = HealthMonitor(params), _EagerMonitor(params)
     raised, unexcited = set(), set()
-    for kind, arg in _stream(seed):
+    rec_fast, rec_ref = _Recorded(fast), _Recorded(ref)
+    for call, (kind, arg) in enumerate(_stream(seed)):
+        rec_fast.call = rec_ref.call = call
         for mon in (fast, ref):
             if kind == "imu":
                 mon.observe_imu(arg)
@@ -171,6 +193,10 @@ def test_deferred_windows_match_the_eager_monitor(seed: int, params: HealthParam
         assert _state(fast) == _state(ref)
         raised |= fast.active()
         unexcited.add(fast._unexcited_since is not None)
+    # Wherever the deferred monitor computes the world acceleration, it has the eager one's window and value.
+    assert len(rec_fast.values) > 10
+    for call, value in rec_fast.values.items():
+        assert value == rec_ref.values[call]
     fast._flush_imu()
     ref._flush_imu()
     assert np.array_equal(fast._accel_W.t, ref._accel_W.t)

@@ -107,6 +107,9 @@ class HealthMonitor:
         # the IMU window (:meth:`_flush_imu_window`).
         self._pending: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._n_in_imu = 0
+        # Samples of earlier frames with the attitude they are rotated by, whose world accelerations wait
+        # for the test that reads them (:meth:`_defer_accel`), oldest first.
+        self._deferred: list[tuple[tuple[float, np.ndarray, np.ndarray, np.ndarray], list]] = []
         self._next_check_t: float | None = None
 
     # ------------------------------------------------------------------ inputs
@@ -147,7 +150,11 @@ class HealthMonitor:
     def observe_frame(self, t_s: float, health: HealthStatus, estimate: StateEstimate | None) -> None:
         """Feed the estimator's status and estimate after one camera frame (``t_s`` on the IMU clock)."""
         p = self.params
-        self._flush_imu()
+        valid = estimate is not None and all(np.all(np.isfinite(x)) for x in (estimate.v_WB, estimate.R_WB))
+        if valid:
+            self._defer_accel()  # this estimate replaces the attitude the buffered samples are rotated by
+        else:
+            self._flush_imu()
         self._active = {n for n in self._active if n in ("insufficient_excitation", "imu_saturation")}
         if not self._excitation_ok:
             self._active.add("insufficient_excitation")
@@ -163,7 +170,7 @@ class HealthMonitor:
                 f"{health.tracked_features} tracked features (< {p.min_tracked_features}) for "
                 f"{self._poor_frames} frames",
             )
-        if estimate is not None and all(np.all(np.isfinite(x)) for x in (estimate.v_WB, estimate.R_WB)):
+        if valid:
             self._speed_m_s = float(np.linalg.norm(estimate.v_WB))
             self._attitude = (
                 float(estimate.t_s),
@@ -217,25 +224,56 @@ class HealthMonitor:
         rows = np.hstack([gyro, np.array([s[2] for s in new]), np.linalg.norm(gyro, axis=1)[:, None]])
         self._imu.extend(np.array([s[0] for s in new]), rows)
 
+    def _defer_accel(self) -> None:
+        """At a frame whose estimate replaces the attitude: defer the world accelerations of the buffer.
+
+        The buffered samples enter the IMU window now and wait, with the attitude they are rotated by, for
+        the world-acceleration window (:meth:`_flush_imu`). Segments that lie wholly before the window are
+        dropped (the window would drop their rows).
+        """
+        self._flush_imu_window()
+        pending, self._pending, self._n_in_imu = self._pending, [], 0
+        if self._attitude is None or not pending:
+            return
+        self._deferred.append((self._attitude, pending))
+        lo = pending[-1][0] - self.params.excitation_window_s
+        while self._deferred[0][1][-1][0] < lo:
+            self._deferred.pop(0)
+
     def _flush_imu(self) -> None:
         """Move the buffered IMU samples into both windows, with their world accelerations.
 
-        The attitude is propagated from the latest estimate with each sample's gyro over the interval ending
-        at it (``R <- R Exp((gyro - b_g) dt)``), as one sample at a time would. A frame flushes before it
-        replaces that estimate, so a batch never spans two estimates and the batched values are the
-        per-sample ones.
+        The deferred segments first (each with its own attitude), then the samples since the latest frame.
         """
+        for attitude, samples in self._deferred:
+            self._accel_from(attitude, samples)
+        self._deferred = []
         pending = self._pending
         if not pending:
             return
         self._flush_imu_window()
         self._pending, self._n_in_imu = [], 0
-        if self._attitude is None:
-            return
-        t = np.array([s[0] for s in pending])
-        gyro = np.array([s[1] for s in pending])
-        accel = np.array([s[2] for s in pending])
-        t_att, R_WB, b_g, b_a = self._attitude
+        if self._attitude is not None:
+            self._attitude = self._accel_from(self._attitude, pending)
+
+    def _accel_from(
+        self, attitude: tuple[float, np.ndarray, np.ndarray, np.ndarray], samples: list
+    ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """Add the samples' world accelerations to the window; return the attitude propagated through them.
+
+        The attitude is propagated from the latest estimate with each sample's gyro over the interval ending
+        at it (``R <- R Exp((gyro - b_g) dt)``), as one sample at a time would. A batch never spans two
+        estimates (a frame that replaces the estimate closes it), so the batched values are the per-sample
+        ones.
+
+        Args:
+            attitude: ``(t_s, R_WB (3, 3), b_g (3,), b_a (3,))`` the samples start from.
+            samples: ``(t_s, gyro_B (3,), accel_B (3,))`` in time order.
+        """
+        t = np.array([s[0] for s in samples])
+        gyro = np.array([s[1] for s in samples])
+        accel = np.array([s[2] for s in samples])
+        t_att, R_WB, b_g, b_a = attitude
         prev = np.maximum.accumulate(np.concatenate([[t_att], t]))[:-1]
         dt = np.maximum(t - prev, 0.0)
         steps = Rotation.from_rotvec((gyro - b_g) * dt[:, None]).as_matrix()
@@ -243,16 +281,16 @@ class HealthMonitor:
         for i in range(len(t)):
             R_WB = R_WB @ steps[i]
             R_all[i] = R_WB
-        self._attitude = (max(t_att, float(t[-1])), R_WB, b_g, b_a)
         a_W = np.einsum("nij,nj->ni", R_all, accel - b_a) - np.array([0.0, 0.0, GRAVITY_M_S2])
         self._accel_W.extend(t, a_W)
+        return (max(t_att, float(t[-1])), R_WB, b_g, b_a)
 
     def _accel_window_full(self, t: float) -> bool:
         """Whether the world-acceleration window, flushed now (newest sample ``t``), spans the test's window.
 
         The flush drops the rows older than ``t - excitation_window_s``; its first row is the first kept row
-        of the window, else the first kept buffered sample (buffered samples enter only once there is an
-        attitude). So the test is decided without the flush.
+        of the window, else the first kept deferred or buffered sample (buffered samples enter only once
+        there is an attitude). So the test is decided without the flush.
         """
         p = self.params
         lo = t - p.excitation_window_s
@@ -260,10 +298,13 @@ class HealthMonitor:
         i = int(np.searchsorted(times, lo, side="left"))
         if i < len(times):
             first = float(times[i])
-        elif self._attitude is not None and self._pending:
-            first = next((s[0] for s in self._pending if s[0] >= lo), self._pending[-1][0])
-        else:
-            return False
+        else:  # the deferred segments' samples, then the buffered ones (they enter with an attitude)
+            waiting = [s for _, samples in self._deferred for s in samples]
+            if self._attitude is not None:
+                waiting += self._pending
+            first = next((s[0] for s in waiting if s[0] >= lo), None)
+            if first is None:
+                return False
         return t - first >= 0.99 * p.excitation_window_s
 
     def _world_accel_rms(self) -> float:
