@@ -299,10 +299,12 @@ class HealthMonitor:
         if i < len(times):
             first = float(times[i])
         else:  # the deferred segments' samples, then the buffered ones (they enter with an attitude)
-            waiting = [s for _, samples in self._deferred for s in samples]
-            if self._attitude is not None:
-                waiting += self._pending
-            first = next((s[0] for s in waiting if s[0] >= lo), None)
+            # A segment's last sample is its newest: look into the first segment that reaches ``lo``.
+            segments = [samples for _, samples in self._deferred]
+            if self._attitude is not None and self._pending:
+                segments.append(self._pending)
+            seg = next((samples for samples in segments if samples[-1][0] >= lo), None)
+            first = None if seg is None else next(s[0] for s in seg if s[0] >= lo)
             if first is None:
                 return False
         return t - first >= 0.99 * p.excitation_window_s
