@@ -88,7 +88,7 @@ class HealthMonitor:
         self.params = params if params is not None else HealthParams()
         self._conditions: dict[str, Condition] = {}
         self._active: set[str] = set()
-        self._imu = _SlidingWindow(self.params.excitation_window_s, 6)  # [gyro_B, accel_B]
+        self._imu = _SlidingWindow(self.params.excitation_window_s, 7)  # [gyro_B, accel_B, |gyro_B|]
         self._accel_W = _SlidingWindow(self.params.excitation_window_s, 3)
         self._attitude: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None  # t, R_WB, b_g, b_a
         self._first_imu_t: float | None = None
@@ -103,15 +103,21 @@ class HealthMonitor:
         self._initialized = False
         self._init_checked = False
         self._last_used_t: float | None = None
-        self._pending: list[tuple[float, np.ndarray, np.ndarray]] = []  # IMU samples not yet in the windows
+        # IMU samples not yet in the world-acceleration window; the first ``_n_in_imu`` of them are already in
+        # the IMU window (:meth:`_flush_imu_window`).
+        self._pending: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self._n_in_imu = 0
+        # Samples of earlier frames with the attitude they are rotated by, whose world accelerations wait
+        # for the test that reads them (:meth:`_defer_accel`), oldest first.
+        self._deferred: list[tuple[tuple[float, np.ndarray, np.ndarray, np.ndarray], list]] = []
         self._next_check_t: float | None = None
 
     # ------------------------------------------------------------------ inputs
     def observe_imu(self, sample: ImuSample) -> None:
-        """Feed one IMU sample (saturation count now; the excitation windows every ``excitation_check_s``).
+        """Feed one IMU sample (saturation count now; the excitation test every ``excitation_check_s``).
 
-        Samples are buffered and enter the excitation windows in batches (vectorized), before each excitation
-        check and before each frame, so the result is the per-sample one at a fraction of the cost.
+        Samples are buffered and enter the excitation windows in batches (vectorized) when a test reads them
+        and before each frame, so the result is the per-sample one at a fraction of the cost.
         """
         p = self.params
         t = float(sample.t_s)
@@ -132,7 +138,6 @@ class HealthMonitor:
                     f"(gyro {np.array2string(gyro, precision=2)} rad/s)",
                 )
         if self._next_check_t is None or t >= self._next_check_t:
-            self._flush_imu()
             self._check_excitation(t)
             self._next_check_t = t + p.excitation_check_s
         if not self._initialized and t - self._first_imu_t > p.init_timeout_s:
@@ -145,7 +150,11 @@ class HealthMonitor:
     def observe_frame(self, t_s: float, health: HealthStatus, estimate: StateEstimate | None) -> None:
         """Feed the estimator's status and estimate after one camera frame (``t_s`` on the IMU clock)."""
         p = self.params
-        self._flush_imu()
+        valid = estimate is not None and all(np.all(np.isfinite(x)) for x in (estimate.v_WB, estimate.R_WB))
+        if valid:
+            self._defer_accel()  # this estimate replaces the attitude the buffered samples are rotated by
+        else:
+            self._flush_imu()
         self._active = {n for n in self._active if n in ("insufficient_excitation", "imu_saturation")}
         if not self._excitation_ok:
             self._active.add("insufficient_excitation")
@@ -161,7 +170,7 @@ class HealthMonitor:
                 f"{health.tracked_features} tracked features (< {p.min_tracked_features}) for "
                 f"{self._poor_frames} frames",
             )
-        if estimate is not None and all(np.all(np.isfinite(x)) for x in (estimate.v_WB, estimate.R_WB)):
+        if valid:
             self._speed_m_s = float(np.linalg.norm(estimate.v_WB))
             self._attitude = (
                 float(estimate.t_s),
@@ -202,22 +211,69 @@ class HealthMonitor:
         if name not in self._conditions:
             self._conditions[name] = Condition(name, float(t_s), evidence)
 
+    def _flush_imu_window(self) -> None:
+        """Move the buffered IMU samples into the IMU window ``[gyro_B, accel_B, |gyro_B|]``.
+
+        They stay buffered for the world-acceleration window, which :meth:`_flush_imu` fills.
+        """
+        new = self._pending[self._n_in_imu :]
+        if not new:
+            return
+        self._n_in_imu = len(self._pending)
+        gyro = np.array([s[1] for s in new])
+        rows = np.hstack([gyro, np.array([s[2] for s in new]), np.linalg.norm(gyro, axis=1)[:, None]])
+        self._imu.extend(np.array([s[0] for s in new]), rows)
+
+    def _defer_accel(self) -> None:
+        """At a frame whose estimate replaces the attitude: defer the world accelerations of the buffer.
+
+        The buffered samples enter the IMU window now and wait, with the attitude they are rotated by, for
+        the world-acceleration window (:meth:`_flush_imu`). Segments that lie wholly before the window are
+        dropped (the window would drop their rows).
+        """
+        self._flush_imu_window()
+        pending, self._pending, self._n_in_imu = self._pending, [], 0
+        if self._attitude is None or not pending:
+            return
+        self._deferred.append((self._attitude, pending))
+        lo = pending[-1][0] - self.params.excitation_window_s
+        while self._deferred[0][1][-1][0] < lo:
+            self._deferred.pop(0)
+
     def _flush_imu(self) -> None:
-        """Move the buffered IMU samples into the windows, with their world accelerations.
+        """Move the buffered IMU samples into both windows, with their world accelerations.
+
+        The deferred segments first (each with its own attitude), then the samples since the latest frame.
+        """
+        for attitude, samples in self._deferred:
+            self._accel_from(attitude, samples)
+        self._deferred = []
+        pending = self._pending
+        if not pending:
+            return
+        self._flush_imu_window()
+        self._pending, self._n_in_imu = [], 0
+        if self._attitude is not None:
+            self._attitude = self._accel_from(self._attitude, pending)
+
+    def _accel_from(
+        self, attitude: tuple[float, np.ndarray, np.ndarray, np.ndarray], samples: list
+    ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """Add the samples' world accelerations to the window; return the attitude propagated through them.
 
         The attitude is propagated from the latest estimate with each sample's gyro over the interval ending
-        at it (``R <- R Exp((gyro - b_g) dt)``), as one sample at a time would.
+        at it (``R <- R Exp((gyro - b_g) dt)``), as one sample at a time would. A batch never spans two
+        estimates (a frame that replaces the estimate closes it), so the batched values are the per-sample
+        ones.
+
+        Args:
+            attitude: ``(t_s, R_WB (3, 3), b_g (3,), b_a (3,))`` the samples start from.
+            samples: ``(t_s, gyro_B (3,), accel_B (3,))`` in time order.
         """
-        if not self._pending:
-            return
-        t = np.array([s[0] for s in self._pending])
-        gyro = np.array([s[1] for s in self._pending])
-        accel = np.array([s[2] for s in self._pending])
-        self._pending = []
-        self._imu.extend(t, np.hstack([gyro, accel]))
-        if self._attitude is None:
-            return
-        t_att, R_WB, b_g, b_a = self._attitude
+        t = np.array([s[0] for s in samples])
+        gyro = np.array([s[1] for s in samples])
+        accel = np.array([s[2] for s in samples])
+        t_att, R_WB, b_g, b_a = attitude
         prev = np.maximum.accumulate(np.concatenate([[t_att], t]))[:-1]
         dt = np.maximum(t - prev, 0.0)
         steps = Rotation.from_rotvec((gyro - b_g) * dt[:, None]).as_matrix()
@@ -225,9 +281,33 @@ class HealthMonitor:
         for i in range(len(t)):
             R_WB = R_WB @ steps[i]
             R_all[i] = R_WB
-        self._attitude = (max(t_att, float(t[-1])), R_WB, b_g, b_a)
         a_W = np.einsum("nij,nj->ni", R_all, accel - b_a) - np.array([0.0, 0.0, GRAVITY_M_S2])
         self._accel_W.extend(t, a_W)
+        return (max(t_att, float(t[-1])), R_WB, b_g, b_a)
+
+    def _accel_window_full(self, t: float) -> bool:
+        """Whether the world-acceleration window, flushed now (newest sample ``t``), spans the test's window.
+
+        The flush drops the rows older than ``t - excitation_window_s``; its first row is the first kept row
+        of the window, else the first kept deferred or buffered sample (buffered samples enter only once
+        there is an attitude). So the test is decided without the flush.
+        """
+        p = self.params
+        lo = t - p.excitation_window_s
+        times = self._accel_W.t
+        i = int(np.searchsorted(times, lo, side="left"))
+        if i < len(times):
+            first = float(times[i])
+        else:  # the deferred segments' samples, then the buffered ones (they enter with an attitude)
+            # A segment's last sample is its newest: look into the first segment that reaches ``lo``.
+            segments = [samples for _, samples in self._deferred]
+            if self._attitude is not None and self._pending:
+                segments.append(self._pending)
+            seg = next((samples for samples in segments if samples[-1][0] >= lo), None)
+            first = None if seg is None else next(s[0] for s in seg if s[0] >= lo)
+            if first is None:
+                return False
+        return t - first >= 0.99 * p.excitation_window_s
 
     def _world_accel_rms(self) -> float:
         """RMS over the window of the norms of the block-mean world accelerations (m/s^2)."""
@@ -239,15 +319,24 @@ class HealthMonitor:
         return float(np.sqrt(np.mean(np.sum(means**2, axis=1))))
 
     def _check_excitation(self, t: float) -> None:
+        """The excitation test at ``t`` (the newest sample).
+
+        The flag needs the platform moving, a low gyro norm and a low world acceleration: each is computed
+        only when the ones before it hold (the buffered samples enter the windows then), which decides the
+        same as computing all three.
+        """
         p = self.params
-        window_full = len(self._accel_W) > 0 and t - self._accel_W.t[0] >= 0.99 * p.excitation_window_s
-        if not window_full:
+        if not self._accel_window_full(t):
             return
-        gyro = self._imu.x[:, :3]
-        accel_rms = self._world_accel_rms()
-        gyro_norm = float(np.mean(np.linalg.norm(gyro, axis=1)))
-        low = accel_rms < p.min_accel_m_s2 and gyro_norm < p.min_gyro_norm_rad_s
-        moving = self._speed_m_s > p.min_excitation_speed_m_s
+        low = moving = self._speed_m_s > p.min_excitation_speed_m_s
+        if moving:
+            self._flush_imu_window()
+            gyro_norm = float(np.mean(self._imu.x[:, 6]))
+            low = gyro_norm < p.min_gyro_norm_rad_s
+        if low:
+            self._flush_imu()
+            accel_rms = self._world_accel_rms()
+            low = accel_rms < p.min_accel_m_s2
         if not (low and moving):
             self._unexcited_since = None
             self._excitation_ok = True
@@ -269,7 +358,7 @@ class HealthMonitor:
     def _check_init(self, t_s: float, est: StateEstimate) -> None:
         p = self.params
         if len(self._imu):
-            accel = self._imu.x[:, 3:]
+            accel = self._imu.x[:, 3:6]
             g_norm = float(np.mean(np.linalg.norm(accel, axis=1)))
             # Only meaningful when the window was still (std small): then |a| should read 9.81.
             still = float(np.max(np.std(accel, axis=0))) < 0.5

@@ -106,6 +106,30 @@ class PredictionChain:
             cov = self._covs[index] = 0.5 * (cov + cov.T)
         return cov
 
+    def prefetch(self, indices: list[int]) -> None:
+        """Compute the covariances of predictions ``indices`` in one batch (:meth:`cov` then reads them).
+
+        The same values as one :meth:`cov` per index: the stacked products are the per-matrix products
+        (numpy's ``matmul`` multiplies each matrix of a stack as it multiplies one), the symmetrization is
+        elementwise (``tests/test_imu_prediction_batch.py``).
+
+        Raises:
+            IndexError: An index with no prediction.
+        """
+        todo = sorted({i for i in indices if i not in self._covs})
+        if not todo:
+            return
+        if todo[0] < 0 or todo[-1] >= len(self._links):
+            bad = todo[0] if todo[0] < 0 else todo[-1]
+            raise IndexError(f"PredictionChain.prefetch: no prediction {bad} (have {len(self._links)})")
+        self._build_totals()
+        totals = self._totals
+        phi = np.array([totals[i][0] for i in todo])
+        q = np.array([totals[i][1] for i in todo])
+        cov = (phi @ self._P @ phi.transpose(0, 2, 1) + q)[:, :IMU_DIM, :IMU_DIM]
+        cov = 0.5 * (cov + cov.transpose(0, 2, 1))
+        self._covs.update(zip(todo, cov, strict=True))
+
     def _build_totals(self) -> None:
         """Accumulate ``(Phi, Q)`` from the filter state to every prediction made so far."""
         first = len(self._totals)
@@ -261,3 +285,19 @@ class LazyCovarianceEstimate(StateEstimate):
                 self.cov,
             ),
         )
+
+
+def prefetch_covariances(estimates: list[StateEstimate]) -> None:
+    """Compute the covariances of the lazy estimates among ``estimates`` in one batch per chain.
+
+    Reading ``cov`` afterwards costs nothing more and gives the same values
+    (:meth:`PredictionChain.prefetch`); plain estimates and computed covariances are skipped.
+    """
+    by_chain: dict[int, tuple[PredictionChain, list[int]]] = {}
+    for est in estimates:
+        source = getattr(est, "_source", None)
+        if source is not None:
+            chain, index = source
+            by_chain.setdefault(id(chain), (chain, []))[1].append(index)
+    for chain, indices in by_chain.values():
+        chain.prefetch(indices)

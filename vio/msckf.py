@@ -129,6 +129,7 @@ class MsckfEstimator:
         self._runaway_count = 0
         self._version = 0
         self._chain: PredictionChain | None = None
+        self._published: tuple[PredictionChain, int, LazyCovarianceEstimate] | None = None  # estimate() memo
         self.last_stats = UpdateStats()
         self.last_slam_stats = SlamStats()
         self.zupt_count = 0
@@ -198,7 +199,8 @@ class MsckfEstimator:
         """Latest state propagated to the newest IMU sample (the filter itself is not changed).
 
         The mean is predicted one IMU interval per new sample; the covariance only when ``cov`` is read
-        (:mod:`viotb.vio.imu_prediction`), with the same values.
+        (:mod:`viotb.vio.imu_prediction`), with the same values. A call with no IMU sample and no filter
+        change since the last returns the same (frozen) record.
         """
         st = self.state
         if st is None:
@@ -211,12 +213,18 @@ class MsckfEstimator:
                 self._version, st.t_s, st.imu, st.cov[:d, :d], self.propagator, st.intrinsics
             )
         index, vals = chain.advance(t_new)
+        published = self._published
+        if published is not None and published[0] is chain and published[1] == index:
+            # No IMU sample since the last call on this chain: the same prediction, the same record.
+            return published[2]
         omega = np.zeros(3)
         if self._last_imu is not None:
             omega = np.asarray(self._last_imu.gyro_B_rad_s, dtype=float) - vals.gyro_bias_rad_s
             if st.intrinsics is not None:
                 omega = st.intrinsics.T_g @ omega
-        return LazyCovarianceEstimate.from_chain(chain, index, vals, omega)
+        est = LazyCovarianceEstimate.from_chain(chain, index, vals, omega)
+        self._published = (chain, index, est)
+        return est
 
     def health(self) -> HealthStatus:
         """Health after the latest camera frame."""

@@ -35,6 +35,7 @@ from viotb.envs.scenarios.registry import get_fly_scenario
 from viotb.envs.sim.rig import RigConfig
 from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
+from viotb.vio.imu_prediction import prefetch_covariances
 from viotb.vio.lie import rotz, yaw_from_rotmat
 from viotb.vio.recovery import RecoveringEstimator
 from viotb.vio.types import StateEstimate
@@ -141,6 +142,7 @@ def fly(
     n_frames_seen = 0
     monitor = HealthMonitor()
     last_imu_seen = None
+    lazy: list[StateEstimate] = []  # the estimates whose sigmas the log fills in at the next frame
     wall0, cpu0 = time.perf_counter(), time.process_time()
     while loop.t_s < total_s - 1e-9:
         est = loop.estimate() if lc is None else lc.correct(loop.t_s, loop.estimate())
@@ -164,7 +166,7 @@ def fly(
         airborne = phase != "ground" and (loop.t_s - seq.plan_t0_s > 1.0 or phase != "takeoff")
         if loop.crashed(airborne):
             crashed = True
-        _log_tick(log, loop, phase, est, setpoint, gauge, tr, thrusts)
+        _log_tick(log, loop, phase, est, setpoint, gauge, tr, thrusts, lazy)
         if loop.last_imu is not None and loop.last_imu is not last_imu_seen:
             last_imu_seen = loop.last_imu
             monitor.observe_imu(last_imu_seen)
@@ -181,7 +183,9 @@ def fly(
                 else:
                     diverged, reason = True, f"health monitor: {cond.evidence}"
             log.append_frame(loop.t_s, h.tracked_features, h.conditions)
-            log.resolve_deferred()  # the covariances since the last frame, in one batch
+            prefetch_covariances(lazy)  # the covariances since the last frame, in one batch
+            lazy.clear()
+            log.resolve_deferred()
             if lc is not None and loop.last_frame is not None and _loop_phase(lc, seq):
                 frame_image = loop.last_frame.image
                 lc.on_frame(loop.t_s, frame_image, loop.estimate(), h.tracked_features, loop.truth())
@@ -277,7 +281,9 @@ def _sigma_in_gauge(est: StateEstimate, gauge: tuple[float, float, float, float,
     return (math.sqrt(max(vxx, 0.0)), math.sqrt(max(vyy, 0.0)), math.sqrt(max(czz, 0.0)))
 
 
-def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, tr, thrusts) -> None:
+def _log_tick(
+    log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, tr, thrusts, lazy: list | None = None
+) -> None:
     """Append one control tick to the log (setpoint and estimate mapped to the truth frame by the gauge).
 
     The gauge is a yaw about z and a translation, applied in floats (:func:`_gauge_floats`): the values
@@ -285,7 +291,8 @@ def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, 
     An estimate whose covariance is not computed yet (``LazyCovarianceEstimate`` of
     :mod:`viotb.vio.imu_prediction`) has its sigmas filled in later by the log
     (:meth:`FlightLog.resolve_deferred`, once per frame), so that the covariances between two frames are
-    computed in one batch.
+    computed in one batch: such an estimate is appended to ``lazy``, which the flight hands to
+    :func:`~viotb.vio.imu_prediction.prefetch_covariances` before the log resolves its cells.
     """
     imu = loop.last_imu
     nan3 = (math.nan, math.nan, math.nan)
@@ -301,6 +308,8 @@ def _log_tick(log: FlightLog, loop: ClosedLoopSim, phase, est, setpoint, gauge, 
                 p_sigma = _sigma_in_gauge(est, gauge)
             else:
                 deferred = ("p_sigma_W", partial(_sigma_in_gauge, est, gauge))
+                if lazy is not None:
+                    lazy.append(est)
             (r00, _, _), (r10, _, _), _ = est.R_WB.tolist()
             yaw_est = math.atan2(s * r00 + c * r10, c * r00 - s * r10)
         if setpoint is not None:
