@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from viotb.vio.camera import CameraCalibration
+from viotb.vio.klt_flow import LK_NO_ERROR_PASS
 
 
 def relative_pose(calib0: CameraCalibration, calib1: CameraCalibration) -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +156,9 @@ class StereoMatchParams:
         max_epipolar_px: Largest distance from the epipolar plane, as an angle times the right focal (px).
         min_depth_m: Nearest accepted depth (m).
         max_depth_m: Farthest accepted depth (m).
+        lk_skip_error_pass: Run the KLT passes without OpenCV's error pass
+            (:data:`viotb.vio.klt_flow.LK_NO_ERROR_PASS`): the same matches bit for bit, since a match must
+            land inside the right image and track back within ``max_forward_backward_px`` of its left point.
     """
 
     win_size_px: int = 21
@@ -166,6 +170,7 @@ class StereoMatchParams:
     max_epipolar_px: float = 1.5
     min_depth_m: float = 0.1
     max_depth_m: float = 50.0
+    lk_skip_error_pass: bool = True
 
 
 @dataclass(frozen=True)
@@ -237,7 +242,7 @@ def match_stereo(
     lk = {
         "winSize": (p.win_size_px, p.win_size_px),
         "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
-        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
+        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW | (LK_NO_ERROR_PASS if p.lk_skip_error_pass else 0),
     }
     uv1 = np.zeros((n, 1, 2), dtype=np.float32)
     back = np.zeros((n, 1, 2), dtype=np.float32)
