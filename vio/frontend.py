@@ -13,6 +13,7 @@ per clone time and camera in fixed arrays and answers time-based queries (:mod:`
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -23,6 +24,7 @@ from viotb.vio.camera import PinholeCamera
 from viotb.vio.feature_database import FeatureDatabase
 from viotb.vio.klt_anchor import TemplateAnchors
 from viotb.vio.klt_detect import detect_corners
+from viotb.vio.klt_flow import LK_NO_ERROR_PASS
 from viotb.vio.types import CameraFrame
 
 __all__ = [
@@ -175,6 +177,10 @@ class KltParams:
             forward pass kept in a second thread during the backward pass (both release the GIL), then keep
             those the check kept: the kernel aligns each track on its own and a dropped track ends, so the
             tracks are the sequential ones. Saves wall time, not CPU.
+        lk_skip_error_pass: Run the Lucas-Kanade passes without OpenCV's final error pass
+            (:data:`viotb.vio.klt_flow.LK_NO_ERROR_PASS`; the tracker never reads the error). The same
+            tracks bit for bit: the pass only changes the status of points that ended beyond the image's
+            window padding, which the border and forward-backward tests refuse anyway. ~5 % of the KLT.
     """
 
     max_features: int = 180
@@ -204,6 +210,7 @@ class KltParams:
     anchor_zncc_at_final_warp: bool = True
     anchor_compiled: bool = True
     parallel_anchoring: bool = True
+    lk_skip_error_pass: bool = True
 
 
 class KltTracker:
@@ -311,7 +318,8 @@ class KltTracker:
         if self._prev_img is None or len(self._prev_pts) == 0:
             empty = np.zeros(0, dtype=np.int64)
             return np.zeros((0, 2), dtype=np.float32), empty, np.zeros((0, 2)), empty.astype(bool)
-        lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels}
+        flags = LK_NO_ERROR_PASS if p.lk_skip_error_pass else 0
+        lk = {"winSize": (p.win_size_px, p.win_size_px), "maxLevel": p.pyramid_levels, "flags": flags}
         p0 = self._prev_pts.reshape(-1, 1, 2)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_img, img, p0, None, **lk)
         p1 = p1.reshape(-1, 2)
@@ -338,12 +346,13 @@ class KltTracker:
                 "winSize": (p.fb_win_size_px, p.fb_win_size_px),
                 "maxLevel": p.pyramid_levels if p.fb_max_level is None else p.fb_max_level,
                 "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, p.fb_epsilon_px),
+                "flags": flags,
             }
             p1_fwd = p1[fwd].reshape(-1, 1, 2)
             start = None
             if p.fb_max_level is not None:
                 start = self._prev_pts[fwd].reshape(-1, 1, 2).copy()
-                back["flags"] = cv2.OPTFLOW_USE_INITIAL_FLOW
+                back["flags"] = flags | cv2.OPTFLOW_USE_INITIAL_FLOW
             p0r, st2, _ = cv2.calcOpticalFlowPyrLK(img, self._prev_img, p1_fwd, start, **back)
             fb = np.linalg.norm(p0r.reshape(-1, 2) - self._prev_pts[fwd], axis=1)
             good[fwd] = (st2.ravel() == 1) & (fb < p.fb_max_error_px)
@@ -376,8 +385,20 @@ class KltTracker:
         """New FAST corners, bucketed on a grid and away from tracked points, shape (N, 2) float32."""
         return detect_corners(self._fast, self.camera, self.params, img, pts)
 
-    def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
+    def process(
+        self,
+        frame: CameraFrame,
+        t_imu_s: float,
+        tracked: Callable[[np.ndarray, np.ndarray], None] | None = None,
+    ) -> Tracks:
         """Track into ``frame.image``; an absent/empty or featureless image yields zero tracks.
+
+        Args:
+            frame: The camera frame.
+            t_imu_s: Its time on the IMU clock (s).
+            tracked: Called with the tracks carried over from the previous frame, ``(ids (M,) int64,
+                pixels (M, 2) float32)``, before new corners are detected: they are the first M rows of
+                the returned tracks (the stereo matcher starts on them while detection runs).
 
         Raises:
             ValueError: if the image size or type does not match the camera.
@@ -395,6 +416,8 @@ class KltTracker:
             ids = ids.copy()
             ids[fresh] = np.arange(self._next_id, self._next_id + n_fresh, dtype=np.int64)
             self._next_id += n_fresh
+        if tracked is not None:
+            tracked(ids, pts)
         new = self._detect(img, pts)
         if len(new):
             new_ids = np.arange(self._next_id, self._next_id + len(new), dtype=np.int64)
