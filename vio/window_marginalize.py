@@ -31,7 +31,14 @@ from viotb.vio.window_map import (
     fix_first_estimates,
     observations,
 )
-from viotb.vio.window_solver import Factors, FactorWeights, LinearSystem, linearize, schur_reduce
+from viotb.vio.window_solver import (
+    Factors,
+    FactorWeights,
+    LinearSystem,
+    block_index,
+    linearize,
+    schur_reduce,
+)
 
 
 def window_factors(
@@ -128,6 +135,7 @@ def landmark_subsystem(solved: LinearSystem, rows: np.ndarray, base: LinearSyste
         base.n_res,
         solved.max_err[rows],
         base.meas_cost,
+        compiled=solved.compiled,
     )
 
 
@@ -153,7 +161,7 @@ def _solved_base(
         H, g = base.H, base.g
     if solved.prior_terms is not None:
         idx, H_pr, g_pr = solved.prior_terms
-        H[np.ix_(idx, idx)] += H_pr
+        H[block_index(idx)] += H_pr
         g[idx] += g_pr
     if solved.imu_blocks is not None:
         k_imu, JtJ, Jtr = solved.imu_blocks

@@ -27,6 +27,7 @@ from viotb.vio.state import ImuValues
 from viotb.vio.types import ImuNoise
 from viotb.vio.window_calib import image_velocity
 from viotb.vio.window_factors import NX, imu_factor, reprojection
+from viotb.vio.window_linalg import spd_inverse
 from viotb.vio.window_solver import LinearSystem, pose_index, schur_reduce
 
 CHI2_2DOF_99 = 9.21
@@ -57,7 +58,7 @@ class WindowMarginals:
     def from_system(cls, sys: LinearSystem, lm_ids: list[int]) -> WindowMarginals:
         """Invert the reduced system of a solve over landmarks ``lm_ids`` (its row order)."""
         S, _, H_ll_inv = schur_reduce(sys, 0.0)
-        Sigma_all = np.linalg.inv(S)
+        Sigma_all = spd_inverse(S) if sys.compiled else np.linalg.inv(S)
         n, n6 = len(S) - sys.n_calib, sys.E.shape[1] - sys.n_calib
         Sigma, E, index = Sigma_all[:n, :n], sys.E[:, :n6], {f: j for j, f in enumerate(lm_ids)}
         return cls(0.5 * (Sigma + Sigma.T), H_ll_inv, E, index, Sigma_all[n:, n:])

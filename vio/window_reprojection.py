@@ -24,6 +24,7 @@ import numpy as np
 from scipy import sparse
 from viotb.vio.update_helpers import random_walk_whitener, track_path_px
 from viotb.vio.window_factors import NX, project, reprojection
+from viotb.vio.window_kernels import white_reprojection
 
 
 def summing_matrix(row: np.ndarray, n_rows: int) -> sparse.csr_matrix:
@@ -145,9 +146,10 @@ def add_reprojection(
     pts: np.ndarray,
     obs: tuple[np.ndarray, np.ndarray, np.ndarray],
     cam: tuple[np.ndarray, np.ndarray, float, float],
-    sums: tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs,
+    sums: tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs | None,
     blocks: list[WhiteBlocks | TrackBlocks],
     J_extra: np.ndarray | None = None,
+    compiled: bool = False,
 ) -> tuple[float, int]:
     """Add one camera's Huber-weighted reprojection factors to the system (in place).
 
@@ -164,12 +166,15 @@ def add_reprojection(
             keyframe and landmark).
         cam: ``(R_BC (3, 3), p_BC (3,) m, sigma in normalized coordinates, Huber threshold in sigmas)``.
         sums: White noise: sparse 0/1 matrices summing the observations per keyframe (N, M) and landmark
-            (L, M); correlated track noise: the :class:`TrackPairs` of ``obs``.
+            (L, M), or None (made here when needed); correlated track noise: the :class:`TrackPairs` of
+            ``obs``.
         blocks: This camera's blocks are appended (:class:`WhiteBlocks` or :class:`TrackBlocks`): what
             the system of a subset of the landmarks needs.
         J_extra: Jacobians (M, 2, C) w.r.t. C more variables (online calibration,
             :mod:`viotb.vio.window_calib_system`), white noise only: their columns sit in the blocks ``A``
             between the landmark's and the residual (``A[:, 9 : 9 + C]``), or None.
+        compiled: White noise without ``J_extra`` and without first-estimate Jacobians: the blocks by the
+            compiled loop (:func:`viotb.vio.window_kernels.white_reprojection`; ``sums`` is then not used).
 
     Returns:
         ``(robust cost, residual count)``.
@@ -179,6 +184,10 @@ def add_reprojection(
     if not len(kf_i):
         return 0.0, 0
     R_BC, p_BC, sigma_norm, k_h = cam
+    if compiled and J_extra is None and poses[2] is poses[0] and not isinstance(sums, TrackPairs):
+        return _white_compiled(H, g, H_ll, g_l, E, max_err, poses, pts, obs, cam, blocks)
+    if sums is None:  # prepared for the compiled blocks, which first-estimate Jacobians do not take
+        sums = (summing_matrix(kf_i, N), summing_matrix(lm_i, len(H_ll)))
     if poses[2] is poses[0]:
         z, _, J_pose, J_pt = reprojection(poses[0][kf_i], poses[1][kf_i], pts[lm_i], R_BC, p_BC)
     else:  # first-estimate Jacobians, residuals at the current values
@@ -230,3 +239,35 @@ def add_reprojection(
     H_ll += per_lm[:, 6:9, 6:9]
     g_l += per_lm[:, 6:9, -1]
     return cost, 2 * len(kf_i)
+
+
+def _white_compiled(
+    H: np.ndarray,
+    g: np.ndarray,
+    H_ll: np.ndarray,
+    g_l: np.ndarray,
+    E: np.ndarray,
+    max_err: np.ndarray,
+    poses: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    pts: np.ndarray,
+    obs: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cam: tuple[np.ndarray, np.ndarray, float, float],
+    blocks: list[WhiteBlocks | TrackBlocks],
+) -> tuple[float, int]:
+    """The white-noise branch of :func:`add_reprojection` by the compiled ``white_reprojection``."""
+    kf_i, lm_i, xy = (np.ascontiguousarray(a) for a in obs)
+    kf_i, lm_i = kf_i.astype(np.int64, copy=False), lm_i.astype(np.int64, copy=False)
+    R_BC, p_BC, sigma_norm, k_h = cam
+    N, L, M = len(poses[0]), len(H_ll), len(kf_i)
+    per_kf, per_lm, A = np.zeros((N, 10, 10)), np.zeros((L, 10, 10)), np.empty((M, 10, 10))
+    R_WB, p_WB = np.ascontiguousarray(poses[0]), np.ascontiguousarray(poses[1])
+    args = (np.ascontiguousarray(pts), kf_i, lm_i, xy, np.ascontiguousarray(R_BC), np.ascontiguousarray(p_BC))
+    rho = white_reprojection(R_WB, p_WB, *args, 1.0 / sigma_norm, k_h, per_kf, per_lm, A, E, max_err)
+    k_all = np.arange(N)
+    H4 = H.reshape(N, NX, N, NX)
+    H4[k_all, :6, k_all, :6] += per_kf[:, :6, :6]
+    g.reshape(N, NX)[:, :6] += per_kf[:, :6, -1]
+    H_ll += per_lm[:, 6:9, 6:9]
+    g_l += per_lm[:, 6:9, -1]
+    blocks.append(WhiteBlocks(kf_i, lm_i, A))
+    return 0.5 * rho, 2 * M

@@ -21,6 +21,8 @@ from viotb.vio.window_batch import ImuFactorStack, boxminus_batch, imu_factors, 
 from viotb.vio.window_calib import CalibValues
 from viotb.vio.window_calib_system import CalibFactors, CalibTerms
 from viotb.vio.window_factors import NX
+from viotb.vio.window_linalg import block_index, coupled_index, schur_reduce, spd_solve
+from viotb.vio.window_linalg import pose_index as pose_index  # re-exported: its home before
 from viotb.vio.window_reprojection import (
     TrackBlocks,
     TrackPairs,
@@ -80,6 +82,8 @@ class LinearSystem:
         prior_terms: ``(indices (P NX,), H (P NX, P NX), gradient (P NX,))`` of the prior here, or None.
         n_calib: C online-calibration variables after the keyframes' states (``H`` and ``g`` are then
             ``N NX + C`` wide and ``E`` has ``6 N + C`` rows; :mod:`viotb.vio.window_calib_system`).
+        compiled: Its Schur complements by the compiled kernel (``FactorWeights.kernels == "numba"``,
+            :func:`schur_reduce`).
     """
 
     H: np.ndarray
@@ -97,19 +101,7 @@ class LinearSystem:
     imu_blocks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     prior_terms: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     n_calib: int = 0
-
-
-def pose_index(n_kf: int) -> np.ndarray:
-    """Indices of the ``[dtheta, dp]`` entries of ``n_kf`` keyframes in the stacked error state, (6 n_kf,)."""
-    return (np.arange(n_kf)[:, None] * NX + np.arange(6)[None, :]).ravel()
-
-
-def coupled_index(sys: LinearSystem) -> np.ndarray:
-    """Entries of the system that the landmarks couple to (the rows of ``E``): poses, then calibration."""
-    n_kf = (sys.E.shape[1] - sys.n_calib) // 6
-    if not sys.n_calib:
-        return pose_index(n_kf)
-    return np.concatenate([pose_index(n_kf), n_kf * NX + np.arange(sys.n_calib)])
+    compiled: bool = False
 
 
 @dataclass(frozen=True)
@@ -122,22 +114,26 @@ class PreparedFactors:
         prior_rest0: Their ``[p, v, b_g, b_a]``, shape (P, 12).
         sums: Per camera (``obs``, then ``obs_right``), the sparse 0/1 matrices that sum the M observations'
             terms per keyframe (N, M) and per landmark (L, M), or with correlated track noise
-            (``FactorWeights.track_q > 0``) the pairs of views of each landmark.
+            (``FactorWeights.track_q > 0``) the pairs of views of each landmark; None where the compiled
+            blocks need neither (``FactorWeights.kernels == "numba"`` without online calibration).
     """
 
     imu: ImuFactorStack
     prior_R0: np.ndarray
     prior_rest0: np.ndarray
-    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs]
+    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs | None]
 
 
 def prepare(f: Factors, w8: FactorWeights, n_kf: int, n_lm: int) -> PreparedFactors:
     """What :func:`linearize` reuses for ``f`` over ``n_kf`` keyframes and ``n_lm`` landmarks."""
     R0, rest0 = (np.zeros((0, 3, 3)), np.zeros((0, 12))) if f.prior is None else stack_values(f.prior.x0)
-    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs] = []
+    sums: list[tuple[sparse.csr_matrix, sparse.csr_matrix] | TrackPairs | None] = []
     for obs, focal_px in ((f.obs, w8.focal_px), (f.obs_right, w8.focal_px1)):
         if obs is not None and len(obs[0]) and w8.track_q > 0.0:
             sums.append(track_pairs(obs, n_kf, n_lm, focal_px, w8.track_q))
+            continue
+        if w8.kernels == "numba" and f.calib is None:  # the compiled blocks sum themselves
+            sums.append(None)
             continue
         kf_i, lm_i = (np.zeros(0, dtype=np.int64),) * 2 if obs is None else obs[:2]
         sums.append((summing_matrix(kf_i, n_kf), summing_matrix(lm_i, n_lm)))
@@ -210,7 +206,7 @@ def linearize(
         idx = (k_pr[:, None] * NX + np.arange(NX)[None, :]).ravel()
         dx = boxminus_batch(R[k_pr], rest[k_pr], prep.prior_R0, prep.prior_rest0).ravel()
         if cal is None:
-            H[np.ix_(idx, idx)] += pr.H
+            H[block_index(idx)] += pr.H
             g_pr = pr.H @ dx + pr.g
             g[idx] += g_pr
             prior_cost = float(0.5 * dx @ pr.H @ dx + pr.g @ dx)
@@ -257,35 +253,17 @@ def linearize(
         c, n = cal.add_reprojection(arrays, poses, rest, pts, cams_c, calib, f.calib, blocks)
         cost, n_res, cams = cost + c, n_res + n, []
     for obs, cam, sums in cams:
-        c, n = add_reprojection(H, g, H_ll, g_l, E, max_err, poses, pts, obs, cam, sums, blocks)
+        c, n = add_reprojection(
+            H, g, H_ll, g_l, E, max_err, poses, pts, obs, cam, sums, blocks, compiled=w8.kernels == "numba"
+        )
         cost += c
         n_res += n
     E_flat = E.reshape(L, N * 6, 3)
     if cal is not None:
         H, g, E_flat = cal.assemble(H, g, E_flat)
     meas, terms = cost - prior_cost, (blocks, imu_blocks, prior_terms, 0 if cal is None else len(cal.g_c))
-    return LinearSystem(H, g, H_ll, g_l, E_flat, cost, n_res, max_err, meas, *terms)
-
-
-def schur_reduce(sys: LinearSystem, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Eliminate the landmarks (Schur complement) from the system damped by ``lam`` (relative to diagonal).
-
-    Returns:
-        ``(S (N NX, N NX), g_red (N NX,), H_ll^-1 (L, 3, 3))``.
-    """
-    N6 = sys.E.shape[1]
-    H = sys.H + lam * np.diag(np.diag(sys.H))
-    H_ll = sys.H_ll + lam * np.einsum("lii->li", sys.H_ll)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3)
-    H_ll_inv = np.linalg.inv(H_ll)
-    EH = sys.E @ H_ll_inv
-    L = len(H_ll_inv)
-    EH_flat = np.swapaxes(EH, 0, 1).reshape(N6, 3 * L)
-    pidx = coupled_index(sys)
-    S = H.copy()
-    S[np.ix_(pidx, pidx)] -= EH_flat @ np.swapaxes(sys.E, 0, 1).reshape(N6, 3 * L).T
-    g = sys.g.copy()
-    g[pidx] -= EH_flat @ sys.g_l.ravel()
-    return S, g, H_ll_inv
+    compiled = w8.kernels == "numba"
+    return LinearSystem(H, g, H_ll, g_l, E_flat, cost, n_res, max_err, meas, *terms, compiled)
 
 
 @dataclass(frozen=True)
@@ -393,7 +371,7 @@ def solve_steps(
     while taken < max_steps and not st.converged:
         sys, lam = st.system, st.damping
         S, g_red, H_ll_inv = schur_reduce(sys, lam)
-        dx = np.linalg.solve(S, -g_red)
+        dx = (spd_solve if sys.compiled else np.linalg.solve)(S, -g_red)
         rhs = sys.g_l + (np.swapaxes(sys.E, 1, 2) @ dx[pidx])
         dl = -(H_ll_inv @ rhs[:, :, None])[:, :, 0]
         if predicted_decrease(sys, lam, dx, dl) < min_decrease:
@@ -470,4 +448,4 @@ def newest_keyframe_covariance(sys: LinearSystem) -> np.ndarray:
     n, k = S.shape[0], S.shape[0] - sys.n_calib - NX
     e_last = np.zeros((n, NX))
     e_last[k : k + NX] = np.eye(NX)
-    return np.linalg.solve(S, e_last)[k : k + NX]
+    return (spd_solve if sys.compiled else np.linalg.solve)(S, e_last)[k : k + NX]

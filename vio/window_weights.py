@@ -28,6 +28,8 @@ class FactorWeights:
             motion; :mod:`viotb.vio.window_reprojection`), 0 for white noise.
         focal_px: Cam0's focal length (px), the clock of the track noise.
         focal_px1: Cam1's.
+        kernels: ``"numba"``: the white-noise reprojection blocks by the compiled loop of
+            :mod:`viotb.vio.window_kernels`; ``"numpy"``: by array operations (the reference).
     """
 
     noise: ImuNoise
@@ -42,6 +44,7 @@ class FactorWeights:
     track_q: float = 0.0
     focal_px: float = 1.0
     focal_px1: float = 1.0
+    kernels: str = "numba"
 
 
 def stereo_weights(
