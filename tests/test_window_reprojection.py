@@ -220,3 +220,17 @@ def test_marginalization_from_the_solve_equals_a_new_linearization(track_noise):
     scale = np.abs(prior_new.H).max()
     np.testing.assert_allclose(prior_reuse.H, prior_new.H, rtol=1e-9, atol=1e-10 * scale)
     np.testing.assert_allclose(prior_reuse.g, prior_new.g, rtol=1e-9, atol=1e-10 * np.abs(prior_new.g).max())
+
+
+def test_compiled_white_reprojection_equals_the_numpy_reference():
+    """``FactorWeights.kernels``: the numba loop and the numpy path give the same system to round-off."""
+    xs, pts, obs, R_BC, p_BC = _problem()
+    w_nb = dataclasses.replace(_weights(R_BC, p_BC, 0.0), kernels="numba")
+    w_np = dataclasses.replace(_weights(R_BC, p_BC, 0.0), kernels="numpy")
+    a = linearize(xs, pts, _factors(obs), w_nb)
+    b = linearize(xs, pts, _factors(obs), w_np)
+    for name in ("H", "g", "H_ll", "E", "g_l"):
+        x, y = np.asarray(getattr(a, name)), np.asarray(getattr(b, name))
+        scale = max(float(np.abs(y).max()), 1.0)
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-10 * scale, err_msg=name)
+    assert abs(a.cost - b.cost) <= 1e-10 * max(abs(b.cost), 1.0)

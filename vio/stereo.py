@@ -158,7 +158,9 @@ class StereoMatchParams:
         max_depth_m: Farthest accepted depth (m).
         match_tracked_ahead: :class:`~viotb.vio.frontend_stereo.StereoTracker` with a KLT tracker: the
             left-right KLT of the carried-over tracks with a prior depth runs in a worker thread while
-            cam0's new corners are detected (the same matches). Off: fast turns, per frame, 1 OpenCV thread CPU 7.99 -> 8.84 ms, wall 6.63 -> 6.56; 2 threads wall 5.64 -> 5.39 ms (loaded machine, not conclusive).
+            cam0's new corners are detected (the same matches). Off: fast turns, per frame, 1 OpenCV thread
+            CPU 7.99 -> 8.84 ms, wall 6.63 -> 6.56; 2 threads wall 5.64 -> 5.39 ms (loaded machine, not
+            conclusive).
         lk_skip_error_pass: Run the KLT passes without OpenCV's error pass
             (:data:`viotb.vio.klt_flow.LK_NO_ERROR_PASS`): the same matches bit for bit, since a match must
             land inside the right image and track back within ``max_forward_backward_px`` of its left point.

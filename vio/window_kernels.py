@@ -2,7 +2,7 @@
 
 :func:`white_reprojection` is one loop over a camera's observations that does what the white-noise branch of
 :func:`viotb.vio.window_reprojection.add_reprojection` does with numpy (which stays the reference its tests
-compare against, ``tests/test_window_kernels.py``): the projection and its Jacobians
+compare against, ``tests/test_window_reprojection.py``): the projection and its Jacobians
 (:func:`viotb.vio.window_factors.reprojection`), the whitened residual, its Huber weight and cost, each
 observation's block ``A = w J^T J`` (``J = [J_pose (6), J_point (3), r] / sigma``, shape (2, 10)) and their
 sums per keyframe and per landmark. The numpy path made about 40 array operations of M rows each and two

@@ -9,7 +9,7 @@ with the prior, positive definite: a Cholesky factor costs a third of the LU ``n
 ``potri`` inverts it from that factor (the covariances of :class:`viotb.vio.window_nis.WindowMarginals`) in
 about half the work of ``np.linalg.inv``. Where ``S`` is not numerically positive definite (a diverging
 window) both fall back to numpy's LU, so what happened before still happens (a singular ``S`` raises
-``LinAlgError``). The values agree with LU to round-off (``tests/test_window_kernels.py``).
+``LinAlgError``). The values agree with LU to round-off (``tests/test_window_reprojection.py``).
 """
 
 from __future__ import annotations
