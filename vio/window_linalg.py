@@ -14,15 +14,12 @@ window) both fall back to numpy's LU, so what happened before still happens (a s
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from scipy.linalg import lapack
 from viotb.vio.window_factors import NX
 from viotb.vio.window_kernels import landmark_products
-
-if TYPE_CHECKING:
-    from viotb.vio.window_solver import LinearSystem
 
 
 def spd_solve(S: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -62,7 +59,7 @@ def block_index(idx: np.ndarray) -> tuple[slice, slice] | tuple[np.ndarray, np.n
     return np.ix_(idx, idx)
 
 
-def coupled_index(sys: LinearSystem) -> np.ndarray:
+def coupled_index(sys: Any) -> np.ndarray:
     """Entries of the system that the landmarks couple to (the rows of ``E``): poses, then calibration."""
     n_kf = (sys.E.shape[1] - sys.n_calib) // 6
     if not sys.n_calib:
@@ -71,7 +68,7 @@ def coupled_index(sys: LinearSystem) -> np.ndarray:
 
 
 def schur_reduce(
-    sys: LinearSystem, lam: float, compiled: bool | None = None
+    sys: Any, lam: float, compiled: bool | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Eliminate the landmarks (Schur complement) from the system damped by ``lam`` (relative to diagonal).
 
