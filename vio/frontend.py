@@ -13,7 +13,6 @@ per clone time and camera in fixed arrays and answers time-based queries (:mod:`
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -385,20 +384,12 @@ class KltTracker:
         """New FAST corners, bucketed on a grid and away from tracked points, shape (N, 2) float32."""
         return detect_corners(self._fast, self.camera, self.params, img, pts)
 
-    def process(
-        self,
-        frame: CameraFrame,
-        t_imu_s: float,
-        tracked: Callable[[np.ndarray, np.ndarray], None] | None = None,
-    ) -> Tracks:
+    def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
         """Track into ``frame.image``; an absent/empty or featureless image yields zero tracks.
 
         Args:
             frame: The camera frame.
             t_imu_s: Its time on the IMU clock (s).
-            tracked: Called with the tracks carried over from the previous frame, ``(ids (M,) int64,
-                pixels (M, 2) float32)``, before new corners are detected: they are the first M rows of
-                the returned tracks (the stereo matcher starts on them while detection runs).
 
         Raises:
             ValueError: if the image size or type does not match the camera.
@@ -416,8 +407,6 @@ class KltTracker:
             ids = ids.copy()
             ids[fresh] = np.arange(self._next_id, self._next_id + n_fresh, dtype=np.int64)
             self._next_id += n_fresh
-        if tracked is not None:
-            tracked(ids, pts)
         new = self._detect(img, pts)
         if len(new):
             new_ids = np.arange(self._next_id, self._next_id + len(new), dtype=np.int64)

@@ -18,21 +18,13 @@ A frame without right data yields the mono tracks unchanged.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import cv2
 import numpy as np
 from viotb.vio.camera import CameraCalibration
-from viotb.vio.frontend import FrontEnd, KltTracker, Tracks
-from viotb.vio.stereo import (
-    LeftRightKlt,
-    StereoMatchParams,
-    klt_groups,
-    left_right_klt,
-    match_stereo,
-    stereo_guess,
-)
+from viotb.vio.frontend import FrontEnd, Tracks
+from viotb.vio.stereo import StereoMatchParams, match_stereo
 from viotb.vio.types import CameraFrame
 
 
@@ -74,29 +66,17 @@ class StereoTracker:
         # The tracks matched in the previous frame (ids sorted) and their stereo depths (m).
         self._prior_ids = np.zeros(0, dtype=np.int64)
         self._prior_depth_m = np.zeros(0)
-        self._executor: ThreadPoolExecutor | None = None
 
     def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
         """Track cam0 with the wrapped front end, then add this frame's cam1 observations.
-
-        With ``params.match_tracked_ahead`` and a :class:`~viotb.vio.frontend.KltTracker`, the left-right
-        KLT of the tracks that have a prior depth (all carried-over tracks matched in the previous frame)
-        runs in a worker thread while the tracker detects new corners and takes their templates (OpenCV
-        releases the GIL); :func:`~viotb.vio.stereo.match_stereo` takes its result only where its points
-        and guesses are bit for bit its own, so the matches are the sequential ones.
 
         Raises:
             ValueError: if an image does not match its camera.
         """
         images = frame.image_right is not None and frame.image is not None and np.asarray(frame.image).size
-        ahead: list[LeftRightKlt] = []
-        if images and self.params.match_tracked_ahead and isinstance(self.mono, KltTracker):
-            start = lambda ids, pts: self._start_ahead(frame, ids, pts, ahead)  # noqa: E731
-            tracks = self.mono.process(frame, t_imu_s, start)
-        else:
-            tracks = self.mono.process(frame, t_imu_s)
+        tracks = self.mono.process(frame, t_imu_s)
         if images:
-            return self._match_images(frame, tracks, ahead[0] if ahead else None)
+            return self._match_images(frame, tracks)
         if frame.features_right is not None:
             return self._sim_right(frame, tracks)
         return tracks
@@ -110,37 +90,7 @@ class StereoTracker:
             prior[hit] = self._prior_depth_m[pos[hit]]
         return prior
 
-    def _pool(self) -> ThreadPoolExecutor:
-        """The matcher's one worker thread (created on first use)."""
-        if self._executor is None:
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereo-ahead")
-        return self._executor
-
-    def _start_ahead(self, frame: CameraFrame, ids: np.ndarray, pts: np.ndarray, out: list) -> None:
-        """Start the left-right KLT of the carried-over tracks with a prior depth (appended to ``out``)."""
-        cam0, cam1 = self.calib0.camera, self.calib1.camera
-        try:
-            img0 = _gray(frame.image, (cam0.height, cam0.width), "left")
-            img1 = _gray(frame.image_right, (cam1.height, cam1.width), "right")
-        except ValueError:
-            return  # _match_images raises it, after the mono tracker is done (as without this)
-        uv0 = np.asarray(pts, dtype=np.float32).reshape(-1, 2)
-        if len(uv0) == 0:
-            return
-        _, guess, has_prior = stereo_guess(uv0, self.calib0, self.calib1, self.params, self._prior(ids))
-        groups = klt_groups(self.params, has_prior)
-        if len(groups) == 1:
-            return  # one group of all points: the new corners join it
-        sel, level, unchecked_px = groups[0]  # the points with a prior (new corners have none)
-        idx = np.flatnonzero(sel)
-        if len(idx) == 0:
-            return
-        start0, guess0 = uv0[idx].reshape(-1, 1, 2), guess[idx].reshape(-1, 1, 2)
-        p = self.params
-        job = self._pool().submit(left_right_klt, img0, img1, start0, guess0, level, unchecked_px, p)
-        out.append(LeftRightKlt(start0, guess0, level, unchecked_px, job))
-
-    def _match_images(self, frame: CameraFrame, tracks: Tracks, ahead: LeftRightKlt | None = None) -> Tracks:
+    def _match_images(self, frame: CameraFrame, tracks: Tracks) -> Tracks:
         cam0, cam1 = self.calib0.camera, self.calib1.camera
         if len(tracks) == 0:
             self._prior_ids, self._prior_depth_m = np.zeros(0, dtype=np.int64), np.zeros(0)
@@ -149,9 +99,7 @@ class StereoTracker:
         img1 = _gray(frame.image_right, (cam1.height, cam1.width), "right")
         ids = tracks.ids
         prior = self._prior(ids)
-        m = match_stereo(img0, img1, tracks.uv_px, self.calib0, self.calib1, self.params, prior, ahead)
-        if ahead is not None:
-            ahead.get()  # (a group that did not match still ran: wait for it, nothing runs past the frame)
+        m = match_stereo(img0, img1, tracks.uv_px, self.calib0, self.calib1, self.params, prior)
         order = np.argsort(ids[m.mask], kind="stable")
         self._prior_ids, self._prior_depth_m = ids[m.mask][order], m.depth_m[m.mask][order]
         uv1 = m.uv1_px[m.mask]

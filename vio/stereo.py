@@ -156,11 +156,6 @@ class StereoMatchParams:
         max_epipolar_px: Largest distance from the epipolar plane, as an angle times the right focal (px).
         min_depth_m: Nearest accepted depth (m).
         max_depth_m: Farthest accepted depth (m).
-        match_tracked_ahead: :class:`~viotb.vio.frontend_stereo.StereoTracker` with a KLT tracker: the
-            left-right KLT of the carried-over tracks with a prior depth runs in a worker thread while
-            cam0's new corners are detected (the same matches). Off: fast turns, per frame, 1 OpenCV thread
-            CPU 7.99 -> 8.84 ms, wall 6.63 -> 6.56; 2 threads wall 5.64 -> 5.39 ms (loaded machine, not
-            conclusive).
         lk_skip_error_pass: Run the KLT passes without OpenCV's error pass
             (:data:`viotb.vio.klt_flow.LK_NO_ERROR_PASS`): the same matches bit for bit, since a match must
             land inside the right image and track back within ``max_forward_backward_px`` of its left point.
@@ -175,7 +170,6 @@ class StereoMatchParams:
     max_epipolar_px: float = 1.5
     min_depth_m: float = 0.1
     max_depth_m: float = 50.0
-    match_tracked_ahead: bool = False
     lk_skip_error_pass: bool = True
 
 
@@ -194,43 +188,6 @@ class StereoMatches:
     mask: np.ndarray
     p_C0: np.ndarray
     depth_m: np.ndarray
-
-
-@dataclass(frozen=True)
-class LeftRightKlt:
-    """The left-right KLT of some points, started before :func:`match_stereo` (e.g. in a worker thread).
-
-    :func:`match_stereo` takes it for a group of its points only where the group is the same: the same
-    pyramid levels and check distance, and bit for bit the same left points and initial guesses (else it
-    runs the KLT itself), so its matches are those of a sequential run.
-
-    Attributes:
-        start_px: Left points, shape (K, 1, 2) float32.
-        guess_px: Initial guesses in the right image, shape (K, 1, 2) float32.
-        level: Pyramid levels.
-        unchecked_px: Tracked back unless within this distance (px) of the guess (negative: always).
-        result: The :func:`left_right_klt` result, or a ``concurrent.futures.Future`` of it.
-    """
-
-    start_px: np.ndarray
-    guess_px: np.ndarray
-    level: int
-    unchecked_px: float
-    result: object
-
-    def matches(self, start_px: np.ndarray, guess_px: np.ndarray, level: int, unchecked_px: float) -> bool:
-        """Whether this KLT ran on exactly these points and settings."""
-        return (
-            self.level == level
-            and self.unchecked_px == unchecked_px
-            and np.array_equal(self.start_px, start_px)
-            and np.array_equal(self.guess_px, guess_px)
-        )
-
-    def get(self) -> tuple[np.ndarray, ...]:
-        """The result (waits for a future)."""
-        res = self.result
-        return res.result() if hasattr(res, "result") else res
 
 
 def _lk_settings(p: StereoMatchParams) -> dict:
@@ -333,7 +290,6 @@ def match_stereo(
     calib1: CameraCalibration,
     params: StereoMatchParams | None = None,
     prior_depth_m: np.ndarray | None = None,
-    ahead: LeftRightKlt | None = None,
 ) -> StereoMatches:
     """Track left-image points into the right image (KLT) and keep the geometrically consistent ones.
 
@@ -351,8 +307,6 @@ def match_stereo(
         params: Settings.
         prior_depth_m: Per-point depth (m) of the initial guess, shape (N,) (e.g. the depth of the same
             track in the previous frame); non-finite entries use ``params.prior_depth_m``.
-        ahead: Steps 2-3 of one group of points already run (:class:`LeftRightKlt`), used where that
-            group is bit for bit the same.
 
     Returns:
         The matches (all N rows; see ``mask``).
@@ -377,10 +331,7 @@ def match_stereo(
             continue
         start0 = uv0[idx].reshape(-1, 1, 2)
         guess0 = guess[idx].reshape(-1, 1, 2)
-        if ahead is not None and ahead.matches(start0, guess0, level, unchecked_px):
-            res = ahead.get()
-        else:
-            res = left_right_klt(image0, image1, start0, guess0, level, unchecked_px, p)
+        res = left_right_klt(image0, image1, start0, guess0, level, unchecked_px, p)
         uv1[idx], st1[idx], back[idx], st0[idx] = res
     uv1 = uv1.reshape(-1, 2).astype(float)
     ok = (st1.ravel() == 1) & (st0.ravel() == 1)
