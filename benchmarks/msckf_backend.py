@@ -32,13 +32,12 @@ from pathlib import Path
 
 import numpy as np
 from viotb.envs.data.euroc import read_euroc
-from viotb.envs.data.eval_frames import camera_frame, usable_frames
 from viotb.envs.data.eval_options import EvalOptions
 from viotb.envs.run.headset import HEADSET_MSCKF, default_gyro_noise_inflation, estimator_imu_noise
+from viotb.envs.tools.backend_replay import BackendReplay
 from viotb.vio.factory import make_estimator
 from viotb.vio.frontend import Tracks
 from viotb.vio.msckf_params import MsckfParams
-from viotb.vio.types import CameraFrame
 
 
 class BackendRun:
@@ -61,22 +60,6 @@ class BackendRun:
         self.frontend_ms = np.zeros(0)
         self.keyframe = np.zeros(0, dtype=bool)
         self.estimates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-
-
-class _ReplayedFrontEnd:
-    """Returns captured tracks in order (the estimator's ``frontend`` in a replay)."""
-
-    def __init__(self, tracks: list[Tracks]) -> None:
-        self._tracks = tracks
-        self._next = 0
-
-    def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
-        tracks = self._tracks[self._next]
-        self._next += 1
-        return tracks
-
-    def reset(self) -> None:
-        """Nothing to reset (the captured tracks already contain the real front end's resets)."""
 
 
 def run_backend(
@@ -104,35 +87,10 @@ def run_backend(
         params = replace(HEADSET_MSCKF, update_kernels=kernels)
         noise = estimator_imu_noise(noise, default_gyro_noise_inflation("msckf", params))
     est = make_estimator("msckf", ds.calib, noise, frontend=frontend, params=params, **stereo)
-    first, stop = usable_frames(ds, opts)
-    front_ms = np.zeros(stop - first)
+    replay = BackendReplay(est, ds, opts, tracks)
     run = BackendRun()
-    if tracks is None:
-        real = est.frontend.process
-        rng = np.random.default_rng(0)
-        frames = (camera_frame(ds, k, opts, rng, ds.calib) for k in range(first, stop))
-
-        def timed(frame: CameraFrame, t_imu_s: float) -> Tracks:
-            t0 = time.thread_time()
-            out = real(frame, t_imu_s)
-            front_ms[len(run.tracks)] = (time.thread_time() - t0) * 1e3
-            run.tracks.append(out)
-            return out
-
-        est.frontend.process = timed
-    else:
-        run.tracks = tracks
-        est.frontend = _ReplayedFrontEnd(tracks)
-        frames = (CameraFrame(t_s=float(ds.cam_t_s[k])) for k in range(first, stop))
-    off = ds.calib.time_offset_s
-    imu = ds.imu
-    i = int(np.searchsorted(imu.t_s, float(ds.cam_t_s[first]) + off - 1.0)) if stop > first else 0
     total_ms, t_frames, keyframe = [], [], []
-    for frame in frames:
-        t_imu = frame.t_s + off
-        while i < len(imu) and imu.t_s[i] <= t_imu:
-            est.feed_imu(imu.sample(i))
-            i += 1
+    for frame in replay.frames():
         n_clones = len(est.state.clones) if est.state is not None else 0
         last_clone = next(reversed(est.state.clones), None) if n_clones else None
         t0 = time.thread_time()
@@ -145,7 +103,8 @@ def run_backend(
         if e is not None:
             run.estimates.append((np.array(e.p_WB), np.array(e.R_WB), np.array(e.cov)))
     run.frame_t_s = np.array(t_frames)
-    run.frontend_ms = front_ms[: len(total_ms)] if tracks is None else np.zeros(len(total_ms))
+    run.tracks = replay.tracks
+    run.frontend_ms = replay.frontend_ms(len(total_ms))
     run.backend_ms = np.array(total_ms) - run.frontend_ms
     run.keyframe = np.array(keyframe, dtype=bool)
     return run

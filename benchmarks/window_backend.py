@@ -29,11 +29,10 @@ from pathlib import Path
 
 import numpy as np
 from viotb.envs.data.euroc import read_euroc
-from viotb.envs.data.eval_frames import camera_frame, usable_frames
 from viotb.envs.data.eval_options import EvalOptions
+from viotb.envs.tools.backend_replay import BackendReplay
 from viotb.vio.factory import make_estimator
 from viotb.vio.frontend import Tracks
-from viotb.vio.types import CameraFrame
 from viotb.vio.window_params import WindowParams
 
 
@@ -59,22 +58,6 @@ class BackendRun:
         self.estimates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
 
-class _ReplayedFrontEnd:
-    """Returns captured tracks in order (the estimator's ``frontend`` in a replay)."""
-
-    def __init__(self, tracks: list[Tracks]) -> None:
-        self._tracks = tracks
-        self._next = 0
-
-    def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
-        tracks = self._tracks[self._next]
-        self._next += 1
-        return tracks
-
-    def reset(self) -> None:
-        """Nothing to reset (the captured tracks already contain the real front end's resets)."""
-
-
 def run_backend(
     dataset: Path, tracks: list[Tracks] | None = None, params: WindowParams | None = None
 ) -> BackendRun:
@@ -86,35 +69,10 @@ def run_backend(
     ds = read_euroc(Path(dataset))
     opts = EvalOptions(estimator="window")
     est = make_estimator("window", ds.calib, ds.imu_noise, frontend="klt", window_params=params)
-    first, stop = usable_frames(ds, opts)
-    front_ms = np.zeros(stop - first)
+    replay = BackendReplay(est, ds, opts, tracks)
     run = BackendRun()
-    if tracks is None:
-        real = est.frontend.process
-        rng = np.random.default_rng(0)
-        frames = (camera_frame(ds, k, opts, rng, ds.calib) for k in range(first, stop))
-
-        def timed(frame: CameraFrame, t_imu_s: float) -> Tracks:
-            t0 = time.thread_time()
-            out = real(frame, t_imu_s)
-            front_ms[len(run.tracks)] = (time.thread_time() - t0) * 1e3
-            run.tracks.append(out)
-            return out
-
-        est.frontend.process = timed
-    else:
-        run.tracks = tracks
-        est.frontend = _ReplayedFrontEnd(tracks)
-        frames = (CameraFrame(t_s=float(ds.cam_t_s[k])) for k in range(first, stop))
-    off = ds.calib.time_offset_s
-    imu = ds.imu
-    i = int(np.searchsorted(imu.t_s, float(ds.cam_t_s[first]) + off - 1.0)) if stop > first else 0
     total_ms, keyframe, solving = [], [], []
-    for frame in frames:
-        t_imu = frame.t_s + off
-        while i < len(imu) and imu.t_s[i] <= t_imu:
-            est.feed_imu(imu.sample(i))
-            i += 1
+    for frame in replay.frames():
         n_kf, n_solves = est.keyframes_added, len(est.solve_iterations)
         t0 = time.thread_time()
         est.feed_camera(frame)
@@ -125,7 +83,8 @@ def run_backend(
         e = est.estimate()
         if e is not None:
             run.estimates.append((np.array(e.p_WB), np.array(e.R_WB), np.array(e.cov)))
-    run.frontend_ms = front_ms[: len(total_ms)] if tracks is None else np.zeros(len(total_ms))
+    run.tracks = replay.tracks
+    run.frontend_ms = replay.frontend_ms(len(total_ms))
     run.backend_ms = np.array(total_ms) - run.frontend_ms
     run.keyframe = np.array(keyframe, dtype=bool)
     run.solving = np.array(solving, dtype=bool)
