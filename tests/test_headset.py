@@ -328,3 +328,22 @@ def test_headset_still_stereo_meets_the_jitter_target():
     opts = HeadsetOptions(estimator="msckf", cameras=2, frontend="sim", seconds=10.0)
     result = headset_result(run_headset("headset-still", opts))
     assert result["jitter_pos_mm"] <= 0.2 and result["jitter_rot_deg"] <= 0.01, result
+
+
+@needs_stereo
+def test_headset_names_feature_poverty_in_the_dark(tmp_path):
+    """The health monitor runs beside the headset's estimator: the dark room (KLT finds nothing on the black
+    renders) raises ``feature_poverty`` after its 5 poor frames and keeps it on; a lit look-around raises none.
+    """
+    out = tmp_path / "dark"
+    args = ["headset", "headset-dark-room", "--cameras", "2", "--seconds", "3", "--out", str(out), "--json"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    result = json.loads(res.output.strip().splitlines()[-1])
+    assert result["mean_tracked_features"] < 1.0
+    (poverty,) = [c for c in result["conditions"] if c["name"] == "feature_poverty"]
+    assert poverty["t_since_start_s"] < 2.0 and "tracked features" in poverty["evidence"]
+    assert poverty["intervals_s"][-1][1] == pytest.approx(3.0, abs=0.1)  # still on at the end
+    res, _ = _headset(tmp_path, "headset-look-around", "--seconds", "3", "--cameras", "2")
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output.strip().splitlines()[-1])["conditions"] == []

@@ -137,10 +137,22 @@ def expected_nis_per_dof(
 
 def condition_intervals(trace: EvalTrace) -> dict[str, list[tuple[float, float]]]:
     """For each condition, the time intervals (s) of consecutive frames in which it was active."""
+    return active_intervals(trace.frame_t_s, trace.active)
+
+
+def active_intervals(
+    frame_t_s: np.ndarray, active: tuple[tuple[str, ...], ...] | list[tuple[str, ...]]
+) -> dict[str, list[tuple[float, float]]]:
+    """For each condition name, the intervals (s) of consecutive frames in which it was active.
+
+    Args:
+        frame_t_s: Frame times (s), shape (F,).
+        active: The names active after each frame, length F.
+    """
     out: dict[str, list[tuple[float, float]]] = {}
     open_at: dict[str, float] = {}
     last: dict[str, float] = {}
-    for t, names in zip(trace.frame_t_s, trace.active, strict=True):
+    for t, names in zip(frame_t_s, active, strict=True):
         for n in names:
             if n not in open_at:
                 open_at[n] = float(t)
@@ -153,13 +165,25 @@ def condition_intervals(trace: EvalTrace) -> dict[str, list[tuple[float, float]]
 
 
 def conditions_json(report: list, trace: EvalTrace) -> list[dict]:
+    """The monitor's conditions as JSON rows (:func:`condition_rows` of an eval run's trace)."""
+    return condition_rows(report, trace.frame_t_s, trace.active)
+
+
+def condition_rows(
+    report: list, frame_t_s: np.ndarray, active: tuple[tuple[str, ...], ...] | list[tuple[str, ...]]
+) -> list[dict]:
     """The monitor's conditions as JSON rows.
 
     Each row: name, first time (s, IMU clock, and since the first frame), evidence, and the intervals (s) in
     which it was active.
+
+    Args:
+        report: :meth:`viotb.vio.health.HealthMonitor.report`.
+        frame_t_s: Frame times (s, IMU clock), shape (F,).
+        active: The names active after each frame, length F.
     """
-    t0 = float(trace.frame_t_s[0]) if len(trace.frame_t_s) else 0.0
-    spans = condition_intervals(trace)
+    t0 = float(frame_t_s[0]) if len(frame_t_s) else 0.0
+    spans = active_intervals(frame_t_s, active)
     return [
         {
             "name": c.name,

@@ -40,6 +40,7 @@ from viotb.vio.frontend import KltParams
 from viotb.vio.headset_metrics import (
     interpolate_poses,
 )
+from viotb.vio.health import HealthMonitor
 from viotb.vio.keyframing import KeyframeParams
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.prediction import DisplayPosePredictor, MotionState, PredictionParams
@@ -188,6 +189,8 @@ class HeadsetRun:
         loop: The loop closer's JSON keys (:meth:`FlightLoopClosure.finish`) and its ``loop_closures.csv``
             rows under ``loop_closure_rows``; empty without loop closure.
         closures: The accepted closures (for ``loop_closures.csv``).
+        conditions: The health monitor's conditions (:meth:`~viotb.vio.health.HealthMonitor.report`).
+        active: The monitor's condition names active after each frame, length F.
     """
 
     scenario: str
@@ -214,6 +217,8 @@ class HeadsetRun:
     failure: str = ""
     loop: dict = field(default_factory=dict)
     closures: list = field(default_factory=list)
+    conditions: list = field(default_factory=list)
+    active: list[tuple[str, ...]] = field(default_factory=list)
 
 
 def _rotz(yaw: float) -> np.ndarray:
@@ -346,6 +351,7 @@ def run_headset(
     display = DisplayPoseFilter(opts.display) if opts.display is not None else None
     lc = None if opts.loop is None else FlightLoopClosure(opts.loop, rig.calibs[0], opts.frontend)
     last_image: np.ndarray | None = None
+    monitor, active = HealthMonitor(), []  # the monitor's conditions, as `viotb eval` reports them
 
     g_W = gravity_W()
     rows_t, rows_R, rows_p, pred_R, pred_p, disp_R, disp_p = [], [], [], [], [], [], []
@@ -377,6 +383,8 @@ def run_headset(
                 ms.append((time.perf_counter() - t0) * 1e3)
                 frame_t.append(float(schedule.t_exposure_imu_s[kept[f]]))
                 tracked.append(est.health().tracked_features)
+                monitor.observe_frame(frame_t[-1], est.health(), est.estimate())
+                active.append(tuple(sorted(monitor.active())))
                 last_image = frame.image
                 if frame.image is not None and f % 10 == 0:
                     images.append((frame_t[-1], frame.image))
@@ -386,6 +394,7 @@ def run_headset(
                     progress(f, len(kept))
             sample = imu.sample(k)
             est.feed_imu(sample)
+            monitor.observe_imu(sample)
             if est.health().diverged:
                 failure = f"estimator diverged: {est.health().reason}"
                 break
@@ -460,4 +469,6 @@ def run_headset(
         failure=failure,
         loop=lc.finish() if lc is not None else {},
         closures=list(lc.closer.run_closures) if lc is not None else [],
+        conditions=monitor.report(),
+        active=active,
     )

@@ -8,6 +8,7 @@ pose at IMU rate.
 from __future__ import annotations
 
 import numpy as np
+from viotb.envs.data.diagnosis import condition_rows
 from viotb.envs.run.headset import HeadsetRun
 from viotb.vio.headset_metrics import HeadsetMetricParams, headset_metrics, prediction_errors
 
@@ -111,6 +112,7 @@ def headset_result(run: HeadsetRun, params: HeadsetMetricParams | None = None) -
         float(np.mean(nees)) if len(nees) else None, "nees_pos_mean", notes, "no covariance (or no frame)"
     )
     result["mean_tracked_features"] = float(np.mean(run.tracked)) if len(run.tracked) else 0.0
+    result["conditions"] = condition_rows(run.conditions, run.frame_t_s, run.active)
     result.update({k: v for k, v in run.loop.items() if k != "loop_closure_rows"})
     result["notes"] = notes
     return result
