@@ -332,8 +332,10 @@ def test_headset_still_stereo_meets_the_jitter_target():
 
 @needs_stereo
 def test_headset_names_feature_poverty_in_the_dark(tmp_path):
-    """The health monitor runs beside the headset's estimator: the dark room (KLT finds nothing on the black
-    renders) raises ``feature_poverty`` after its 5 poor frames and keeps it on; a lit look-around raises none.
+    """The health monitor runs beside the headset's estimator; it names the dark room's lost tracking.
+
+    KLT finds nothing on the black renders: ``feature_poverty`` after its 5 poor frames, on to the end; a lit
+    look-around raises nothing.
     """
     out = tmp_path / "dark"
     args = ["headset", "headset-dark-room", "--cameras", "2", "--seconds", "3", "--out", str(out), "--json"]
