@@ -331,3 +331,31 @@ def test_update_linearization_must_be_known():
     world = SyntheticWorld(np.random.default_rng(0))
     with pytest.raises(ValueError, match="update_linearization must be .* got 'fej'"):
         MsckfEstimator(world.calib, ImuNoise(), MsckfParams(frontend="sim", update_linearization="fej"))
+
+
+def test_static_start_couples_tilt_and_accel_bias_when_asked():
+    """``static_tilt_bias_sigma_m_s2`` couples a static start's tilt and horizontal accelerometer bias.
+
+    The window's prior (:func:`viotb.vio.window_init.couple_static_tilt_bias`); off by default and after
+    other starts.
+    """
+    from viotb.vio.window_init import couple_static_tilt_bias
+
+    world = SyntheticWorld(np.random.default_rng(0))
+    R = exp_so3(np.array([0.1, -0.2, 0.3]))
+    cov_diag = np.concatenate([np.full(3, 0.01**2), np.full(6, 1e-4), np.full(3, 1e-6), np.full(3, 0.1**2)])
+    init = InitResult(1.0, R, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), "static", cov_diag)
+    plain = MsckfEstimator(world.calib, ImuNoise(), MsckfParams(frontend="sim"))
+    plain.initialize(init)
+    np.testing.assert_allclose(plain.estimate().cov, np.diag(cov_diag), rtol=1e-12)
+    prm = MsckfParams(frontend="sim", static_tilt_bias_sigma_m_s2=0.01)
+    coupled = MsckfEstimator(world.calib, ImuNoise(), prm)
+    coupled.initialize(init)
+    expected = couple_static_tilt_bias(np.diag(cov_diag), R, 0.01)
+    np.testing.assert_allclose(coupled.estimate().cov, expected, rtol=1e-9, atol=1e-15)
+    # The horizontal bias error is g times the tilt error: the cross block is of size g var(tilt).
+    c = coupled.estimate().cov
+    assert np.abs(c[12:15, 0:3]).max() > 0.9 * 9.81 * 0.01**2
+    dynamic = MsckfEstimator(world.calib, ImuNoise(), prm)
+    dynamic.initialize(replace(init, method="dynamic"))
+    np.testing.assert_allclose(dynamic.estimate().cov, np.diag(cov_diag), rtol=1e-12)

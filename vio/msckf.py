@@ -63,6 +63,7 @@ from viotb.vio.types import (
 from viotb.vio.update_helpers import (
     Chi2Table,
 )
+from viotb.vio.window_init import couple_static_tilt_bias
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
 
@@ -143,6 +144,8 @@ class MsckfEstimator:
         """Start the filter from an ``InitResult`` (t_s, R_WB, p_WB, v_WB, biases, cov_diag (15,))."""
         t_s, vals, cov = read_init_record(init)
         p = self.params
+        if p.static_tilt_bias_sigma_m_s2 is not None and getattr(init, "method", "") == "static":
+            cov = couple_static_tilt_bias(cov, vals.R_WB, p.static_tilt_bias_sigma_m_s2)
         ext_cov = None
         if p.estimate_extrinsics:
             ext_cov = np.diag([p.extrinsic_sigma_rad**2] * 3 + [p.extrinsic_sigma_m**2] * 3)

@@ -120,6 +120,10 @@ class MsckfParams:
             :mod:`viotb.vio.msckf_kernels` and :mod:`viotb.vio.msckf_kernels_tri`: triangulation,
             residuals, Jacobians, whitening, null space and chi-square gate in two calls) or ``"numpy"``
             (the batched reference). They agree to round-off (README "MSCKF per frame", session 10).
+        static_tilt_bias_sigma_m_s2: After a static initialization, couple the filter's tilt and horizontal
+            accelerometer-bias errors (:func:`viotb.vio.window_init.couple_static_tilt_bias`, as the window
+            optimizer does) and leave this 1-sigma (m/s^2) of the horizontal bias independent of the tilt.
+            None (default): the independent variances the initializer reports.
     """
 
     max_clones: int = 11
@@ -152,6 +156,7 @@ class MsckfParams:
     max_slam_features: int = 0
     slam_max_init_sigma_ratio: float = 0.05
     update_kernels: str = "numba"
+    static_tilt_bias_sigma_m_s2: float | None = None
 
     def __post_init__(self) -> None:
         """Reject an unknown ``update_kernels`` (ValueError naming the allowed ones)."""
