@@ -97,7 +97,7 @@ def _state_vector(st) -> np.ndarray:
 
 @pytest.mark.parametrize(
     "variant",
-    ["as_flown", "klt_random_walk", "mono", "first_estimates", "current", "tight_gate"],
+    ["as_flown", "klt_random_walk", "mono", "first_estimates", "current", "tight_gate", "right_sigma"],
 )
 def test_compiled_update_equals_the_numpy_reference(captured_updates, variant):
     n_used = n_rejected = 0
@@ -108,6 +108,8 @@ def test_compiled_update_equals_the_numpy_reference(captured_updates, variant):
             calib_right = None
         elif variant in ("first_estimates", "current"):
             p = replace(p, update_linearization=variant)
+        elif variant == "right_sigma":
+            p = replace(p, right_pixel_sigma_px=1.5)  # cam1 told 3x cam0's 0.5 px
         elif variant == "tight_gate":
             p = replace(p, chi2_multiplier=0.75)  # rejects some, so the kernel's selection is exercised
         out = {}
@@ -139,3 +141,18 @@ def test_compiled_update_equals_the_numpy_reference(captured_updates, variant):
     assert n_used > (10 if variant == "tight_gate" else 50)
     if variant == "tight_gate":
         assert n_rejected > 0
+
+
+def test_right_row_weight_whitens_cam1_to_cam0s_sigma():
+    """Cam1 rows are weighted ``(f1 / f0) (sigma_0 / sigma_1)``: residual / weight is in cam0's sigmas."""
+    from viotb.vio.msckf_update import right_row_weight
+
+    p = MsckfParams(pixel_sigma_px=0.05)
+    assert right_row_weight(p, 120.0, None) == 1.0
+    assert right_row_weight(p, 120.0, 180.0) == pytest.approx(1.5)
+    told = replace(p, right_pixel_sigma_px=0.2)
+    # A cam1 pixel error of 0.2 px (one of its sigmas) at f1 = 180 px weighs as 0.05 px (one sigma) at f0.
+    err_norm = 0.2 / 180.0
+    assert err_norm * right_row_weight(told, 120.0, 180.0) == pytest.approx(0.05 / 120.0)
+    with pytest.raises(ValueError, match="right_pixel_sigma_px"):
+        MsckfParams(right_pixel_sigma_px=0.0)

@@ -120,6 +120,11 @@ class MsckfParams:
             :mod:`viotb.vio.msckf_kernels` and :mod:`viotb.vio.msckf_kernels_tri`: triangulation,
             residuals, Jacobians, whitening, null space and chi-square gate in two calls) or ``"numpy"``
             (the batched reference). They agree to round-off (README "MSCKF per frame", session 10).
+        right_pixel_sigma_px: White pixel noise (px) of cam1's observations on a stereo rig; None (default):
+            ``pixel_sigma_px``. Cam1's observation of a track is matched from cam0's at every frame
+            (:mod:`viotb.vio.frontend_stereo`), so its error is cam0's plus the left-right match's. The
+            track walk of cam1's rows scales with it (``klt.track_random_walk_px2_per_px`` times
+            ``(right_pixel_sigma_px / pixel_sigma_px)^2``); SLAM landmarks keep ``pixel_sigma_px``.
         static_tilt_bias_sigma_m_s2: After a static initialization, couple the filter's tilt and horizontal
             accelerometer-bias errors (:func:`viotb.vio.window_init.couple_static_tilt_bias`, as the window
             optimizer does) and leave this 1-sigma (m/s^2) of the horizontal bias independent of the tilt.
@@ -156,10 +161,15 @@ class MsckfParams:
     max_slam_features: int = 0
     slam_max_init_sigma_ratio: float = 0.05
     update_kernels: str = "numba"
+    right_pixel_sigma_px: float | None = None
     static_tilt_bias_sigma_m_s2: float | None = None
 
     def __post_init__(self) -> None:
         """Reject an unknown ``update_kernels`` (ValueError naming the allowed ones)."""
+        if self.right_pixel_sigma_px is not None and not self.right_pixel_sigma_px > 0.0:
+            raise ValueError(
+                f"MsckfParams.right_pixel_sigma_px must be > 0, got {self.right_pixel_sigma_px!r}"
+            )
         if self.update_kernels not in ("numba", "numpy"):
             raise ValueError(
                 f"MsckfParams.update_kernels must be 'numba' or 'numpy', got {self.update_kernels!r}"

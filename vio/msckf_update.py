@@ -73,6 +73,19 @@ class UpdateStats:
     nis_per_dof_all: float = float("nan")
 
 
+def right_row_weight(p: MsckfParams, focal_px: float, focal_right_px: float | None) -> float:
+    """Weight of cam1's residual rows that whitens them to cam0's normalized white sigma.
+
+    ``(f1 / f0) (sigma_0 / sigma_1)``: cam1's pixels are ``f1 / f0`` times finer, and its observations
+    (found from cam0's every frame, :mod:`viotb.vio.frontend_stereo`) carry cam0's error plus the
+    left-right match's, ``sigma_1 = p.right_pixel_sigma_px`` (None: ``p.pixel_sigma_px``).
+    """
+    ratio = 1.0 if focal_right_px is None else focal_right_px / focal_px
+    if p.right_pixel_sigma_px is not None:
+        ratio *= p.pixel_sigma_px / p.right_pixel_sigma_px
+    return ratio
+
+
 def track_random_walk_px2_per_px(p: MsckfParams) -> float:
     """Random-walk variance (px^2 per px of image motion) of the front end's tracks: KLT's, else 0."""
     return p.klt.track_random_walk_px2_per_px if p.frontend == "klt" else 0.0
@@ -189,8 +202,8 @@ def feature_system(
     else:
         jac = cur
     w = mask[..., None].astype(float)
-    if stereo and focal_right_px is not None and focal_right_px != focal_px:
-        w[:, K:] *= focal_right_px / focal_px  # whiten cam1 rows to cam0's normalized sigma
+    if stereo:
+        w[:, K:] *= right_row_weight(p, focal_px, focal_right_px)  # whiten cam1 rows to cam0's sigma
     r = ((xy - cur.z_norm) * w).reshape(F, 2 * V)
     H_f = (jac.H_feature * w[..., None]).reshape(F, 2 * V, 3)
     # The rows touch only the clone blocks and the extrinsic: steps 3-6 work on those columns ``cols``
@@ -265,8 +278,7 @@ def _projected_rows_numba(
     if calib_right is not None:
         R_BC.append(np.asarray(calib_right.R_BC, dtype=float))
         p_BC.append(np.asarray(calib_right.p_BC, dtype=float))
-        if focal_right_px is not None and focal_right_px != focal_px:
-            w_right = focal_right_px / focal_px
+        w_right = right_row_weight(p, focal_px, focal_right_px)
     V = mask.shape[1]
     focal_v = np.where(np.arange(V) < K, focal_px, focal_right_px or focal_px).astype(float)
     return feature_gate_kernel(
