@@ -34,7 +34,7 @@ import numpy as np
 from viotb.envs.data.euroc import read_euroc
 from viotb.envs.data.eval_options import EvalOptions
 from viotb.envs.run.headset import HEADSET_MSCKF, default_gyro_noise_inflation, estimator_imu_noise
-from viotb.envs.tools.backend_replay import BackendReplay
+from viotb.envs.tools.backend_replay import BackendReplay, ms_summary
 from viotb.vio.factory import make_estimator
 from viotb.vio.frontend import Tracks
 from viotb.vio.msckf_params import MsckfParams
@@ -110,18 +110,6 @@ def run_backend(
     return run
 
 
-def _summary(ms: np.ndarray) -> dict:
-    if ms.size == 0:
-        return {"frames": 0}
-    return {
-        "frames": int(ms.size),
-        "median_ms": float(np.median(ms)),
-        "p99_ms": float(np.percentile(ms, 99)),
-        "max_ms": float(np.max(ms)),
-        "mean_ms": float(np.mean(ms)),
-    }
-
-
 def measure(
     dataset: Path,
     cameras: int = 1,
@@ -145,8 +133,8 @@ def measure(
     kf = online.keyframe
     by_kernels = {
         k: {
-            "backend": _summary(b),
-            "backend_keyframes": _summary(b[kf]),
+            "backend": ms_summary(b),
+            "backend_keyframes": ms_summary(b[kf]),
             "sum_ms": float(np.sum(b)),
             "sum_ratio_to_first": float(np.sum(b) / np.sum(best[kernels[0]])),
         }
@@ -160,11 +148,11 @@ def measure(
         "headset": headset,
         "kernels": list(kernels),
         "repeats": repeats,
-        "backend": _summary(first),
-        "backend_keyframes": _summary(first[kf]),
-        "backend_other_frames": _summary(first[~kf]),
+        "backend": ms_summary(first),
+        "backend_keyframes": ms_summary(first[kf]),
+        "backend_other_frames": ms_summary(first[~kf]),
         "backend_by_kernels": by_kernels,
-        "frontend_online": _summary(online.frontend_ms),
+        "frontend_online": ms_summary(online.frontend_ms),
         "replay_reproduces_online_estimates": bool(reproduced),
     }
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from viotb.envs.data.euroc import read_euroc
 from viotb.envs.data.eval_options import EvalOptions
-from viotb.envs.tools.backend_replay import BackendReplay
+from viotb.envs.tools.backend_replay import BackendReplay, ms_summary
 from viotb.vio.factory import make_estimator
 from viotb.vio.frontend import Tracks
 from viotb.vio.window_params import WindowParams
@@ -91,25 +91,13 @@ def run_backend(
     return run
 
 
-def _summary(ms: np.ndarray) -> dict:
-    if ms.size == 0:
-        return {"frames": 0}
-    return {
-        "frames": int(ms.size),
-        "median_ms": float(np.median(ms)),
-        "p99_ms": float(np.percentile(ms, 99)),
-        "max_ms": float(np.max(ms)),
-        "mean_ms": float(np.mean(ms)),
-    }
-
-
 def summarize(best_ms: np.ndarray, keyframe: np.ndarray, solving: np.ndarray) -> dict:
     """Summaries of the per-frame back-end minima: all frames, keyframes, solve continuations, the rest."""
     return {
-        "backend": _summary(best_ms),
-        "backend_keyframes": _summary(best_ms[keyframe]),
-        "backend_continuations": _summary(best_ms[solving]),
-        "backend_other_frames": _summary(best_ms[~keyframe & ~solving]),
+        "backend": ms_summary(best_ms),
+        "backend_keyframes": ms_summary(best_ms[keyframe]),
+        "backend_continuations": ms_summary(best_ms[solving]),
+        "backend_other_frames": ms_summary(best_ms[~keyframe & ~solving]),
         "sum_ms": float(np.sum(best_ms)),
     }
 
@@ -134,7 +122,7 @@ def measure(dataset: Path, repeats: int = 3, params: WindowParams | None = None)
     online = run_backend(dataset, params=params)
     best, runs = replay_min(dataset, online.tracks, repeats, params)
     out = {"dataset": str(dataset), "repeats": repeats, **summarize(best, online.keyframe, online.solving)}
-    out["frontend_online"] = _summary(online.frontend_ms)
+    out["frontend_online"] = ms_summary(online.frontend_ms)
     out["replay_reproduces_online_estimates"] = all(_same(online, r) for r in runs)
     return out
 
@@ -198,7 +186,7 @@ def main() -> None:
     if a.capture:
         online = run_backend(a.dataset)
         a.capture.write_bytes(pickle.dumps(online.tracks))
-        print(json.dumps({"frames": len(online.tracks), "frontend_online": _summary(online.frontend_ms)}))
+        print(json.dumps({"frames": len(online.tracks), "frontend_online": ms_summary(online.frontend_ms)}))
         return
     if a.tracks:
         tracks = pickle.loads(a.tracks.read_bytes())

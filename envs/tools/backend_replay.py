@@ -98,3 +98,16 @@ class BackendReplay:
     def frontend_ms(self, n: int) -> np.ndarray:
         """CPU ms of the first ``n`` frames' front end (zeros in a replay), shape (n,)."""
         return np.zeros(n) if self._replay else self._front_ms[:n].copy()
+
+
+def ms_summary(ms: np.ndarray) -> dict:
+    """Frames, median, p99, max and mean of per-frame times (ms), shape (N,); ``{"frames": 0}`` when empty."""
+    if ms.size == 0:
+        return {"frames": 0}
+    return {
+        "frames": int(ms.size),
+        "median_ms": float(np.median(ms)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "max_ms": float(np.max(ms)),
+        "mean_ms": float(np.mean(ms)),
+    }
