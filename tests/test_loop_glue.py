@@ -15,6 +15,7 @@ from viotb.envs.data.euroc import read_euroc
 from viotb.envs.data.eval_frames import interpolate_pose
 from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 from viotb.envs.data.record import record_scenario
+from viotb.envs.data.tum import read_tum
 from viotb.envs.run.loop_glue import (
     CSV_COLUMNS,
     FlightLoopClosure,
@@ -60,6 +61,12 @@ def test_eval_with_loop_closure_writes_closures_and_keys(circle):
     # The loop-closed trajectory is no worse than the odometry (which drifts little here: 1.4 cm).
     assert result["ate_posyaw_m"] <= result["ate_posyaw_odometry_m"] + 0.002
     assert result["loop_ms_per_frame_median"] < 2.0
+    # The odometry's metric scale error, against the ratio of the two paths' RMS spreads about their means
+    # (Umeyama's scale up to terms of order (error / spread)^2: (1.4 cm / 1 m)^2, 0.02 %).
+    odo = read_tum(root / "eval" / "estimate_odometry_tum.txt")
+    p_gt = np.stack([np.interp(odo.t_s, gt.t_s, gt.p_WB[:, k]) for k in range(3)], axis=1)
+    spread = [np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))) for p in (odo.p_WB, p_gt)]
+    assert result["scale_error_odometry_pct"] == pytest.approx(100.0 * (spread[0] / spread[1] - 1.0), abs=0.1)
 
 
 def test_cli_options_are_checked():

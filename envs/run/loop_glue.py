@@ -177,7 +177,8 @@ def loop_metrics(run: LoopRun, odometry: TrajectoryArrays, gt: TrajectoryArrays 
     """JSON keys of a loop-closure run: counts, per-frame cost, odometry vs online vs final errors.
 
     ``ate_posyaw_m`` of the final trajectory is the caller's (it evaluates what it writes); here
-    ``ate_posyaw_odometry_m`` and ``ate_posyaw_online_m``, and the error at each return to the start
+    ``ate_posyaw_odometry_m``, ``scale_error_odometry_pct`` (the odometry's metric scale error, which a
+    closure between laps cannot observe), ``ate_posyaw_online_m``, and the error at each return to the start
     (``return_to_start_err{_odometry,_online,}_m``, see :func:`return_errors_m`).
     """
     closer = run.closer
@@ -199,7 +200,9 @@ def loop_metrics(run: LoopRun, odometry: TrajectoryArrays, gt: TrajectoryArrays 
     if gt is not None and len(odometry.t_s) >= 3:
         online = estimates_to_trajectory(run.online)
         final = estimates_to_trajectory(run.final)
-        out["ate_posyaw_odometry_m"] = evaluate_trajectory(odometry, gt)["ate_posyaw_m"]
+        odo = evaluate_trajectory(odometry, gt)
+        out["ate_posyaw_odometry_m"] = odo["ate_posyaw_m"]
+        out["scale_error_odometry_pct"] = odo["scale_error_pct"]  # loops keep it (README, issue #14)
         out["ate_posyaw_online_m"] = evaluate_trajectory(online, gt)["ate_posyaw_m"]
         out["return_to_start_err_odometry_m"] = return_errors_m(odometry, gt)
         out["return_to_start_err_online_m"] = return_errors_m(online, gt)
