@@ -249,6 +249,8 @@ def test_headset_still_jitter_is_small(tmp_path):
 def test_headset_rejects_bad_input(tmp_path):
     res, _ = _headset(tmp_path, "hover")
     assert res.exit_code == 2 and "headset scenario" in res.output
+    res, _ = _headset(tmp_path, "headset-still", "--cameras", "2", "--right-pixel-sigma", "0.2")
+    assert res.exit_code == 2 and "--right-pixel-sigma 0.2 needs" in res.output and "'sim'" in res.output
     res, _ = _headset(tmp_path, "headset-still", "--imu", "icm4")
     assert res.exit_code == 2 and "unknown IMU preset 'icm4'" in res.output and "icm42688-1khz" in res.output
     if not STEREO_MERGED:
@@ -349,3 +351,19 @@ def test_headset_names_feature_poverty_in_the_dark(tmp_path):
     res, _ = _headset(tmp_path, "headset-look-around", "--seconds", "3", "--cameras", "2")
     assert res.exit_code == 0, res.output
     assert json.loads(res.output.strip().splitlines()[-1])["conditions"] == []
+
+
+@needs_stereo
+def test_headset_right_pixel_sigma_reaches_the_filter(tmp_path):
+    """``--right-pixel-sigma`` (KLT stereo MSCKF) tells cam1 its own noise: the estimate moves, stays sane."""
+    worlds = []
+    for extra in ([], ["--right-pixel-sigma", "0.2"]):
+        out = tmp_path / f"rps{len(extra)}"
+        args = ["headset", "headset-look-around", "--cameras", "2", "--seconds", "3", *extra]
+        res = CliRunner().invoke(app, [*args, "--out", str(out), "--json"])
+        assert res.exit_code == 0, res.output
+        result = json.loads(res.output.strip().splitlines()[-1])
+        assert not result["diverged"] and result["world_lock_ate_mm"] < 20.0, result
+        worlds.append(np.loadtxt(out / "estimate_tum.txt")[:, 1:4])
+    n = min(len(w) for w in worlds)
+    assert np.abs(worlds[0][:n] - worlds[1][:n]).max() > 1e-5

@@ -63,6 +63,14 @@ def headset(
         "estimates the gyro's scale/misalignment online; 10 for the others, covering those errors of the "
         "raw part; 1: the sensor's own density).",
     ),
+    right_pixel_sigma: float | None = typer.Option(
+        None,
+        "--right-pixel-sigma",
+        min=1e-6,
+        help="msckf, stereo, klt: the pixel noise (px) cam1's observations are told (default: cam0's; "
+        "cam1 is matched from cam0 every frame, so it carries cam0's error plus the match's; README: 0.2 "
+        "makes the walk consistent).",
+    ),
     no_display_filter: bool = typer.Option(
         False,
         "--no-display-filter",
@@ -89,6 +97,19 @@ def headset(
     from viotb.envs.tools.outdir import atomic_out_dir
 
     try:
+        msckf = None
+        if right_pixel_sigma is not None:
+            if estimator != "msckf" or cameras != 2 or frontend != "klt":
+                raise ValueError(
+                    f"--right-pixel-sigma {right_pixel_sigma} needs --estimator msckf --cameras 2 --frontend "
+                    f"klt (got {estimator!r}, {cameras} camera(s), {frontend!r}; the sim front end's cam1 "
+                    "noise is its own pixel noise)"
+                )
+            from dataclasses import replace
+
+            from viotb.envs.run.headset import HEADSET_MSCKF
+
+            msckf = replace(HEADSET_MSCKF, right_pixel_sigma_px=right_pixel_sigma)
         opts = HeadsetOptions(
             estimator=estimator,
             cameras=cameras,
@@ -98,6 +119,7 @@ def headset(
             frontend=frontend,
             imu_preset=imu,
             gyro_noise_inflation=gyro_noise_inflation,
+            msckf=msckf,
             loop=loop_options(loop_closure, map_in, map_out),
             **({"display": None} if no_display_filter else {}),
         )
