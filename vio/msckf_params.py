@@ -124,7 +124,8 @@ class MsckfParams:
             ``pixel_sigma_px``. Cam1's observation of a track is matched from cam0's at every frame
             (:mod:`viotb.vio.frontend_stereo`), so its error is cam0's plus the left-right match's. The
             track walk of cam1's rows scales with it (``klt.track_random_walk_px2_per_px`` times
-            ``(right_pixel_sigma_px / pixel_sigma_px)^2``); SLAM landmarks keep ``pixel_sigma_px``.
+            ``(right_pixel_sigma_px / pixel_sigma_px)^2``); SLAM landmarks' cam1 rows use it too
+            (:func:`viotb.vio.msckf_update.right_row_weight`).
         static_tilt_bias_sigma_m_s2: After a static initialization, couple the filter's tilt and horizontal
             accelerometer-bias errors (:func:`viotb.vio.window_init.couple_static_tilt_bias`, as the window
             optimizer does) and leave this 1-sigma (m/s^2) of the horizontal bias independent of the tilt.

@@ -53,6 +53,7 @@ from viotb.vio.frontend import Tracks
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.msckf_update import (
     feature_system,
+    right_row_weight,
     track_random_walk_px2_per_px,
     view_poses,
     window_observations,
@@ -356,7 +357,7 @@ def landmark_system(
         R_BC, p_BC = (st.R_BC, st.p_BC) if c == 0 else (calib_right.R_BC, calib_right.p_BC)
         cur = feature_jacobian(clone.R_WB, clone.p_WB, R_BC, np.asarray(p_BC, dtype=float), p_f)
         jac = feature_jacobian(R_lin, p_lin, R_BC, np.asarray(p_BC, dtype=float), f_lin) if first else cur
-        scale = 1.0 if c == 0 or focal_right_px is None else focal_right_px / focal_px
+        scale = 1.0 if c == 0 else right_row_weight(p, focal_px, focal_right_px)
         w = np.where(obs.seen[:, c], scale, 0.0)[:, None]
         z = cur.z_norm + (bias[:, c] if B else 0.0)  # z = h(x, p_f) + b_c + n
         r[:, c] = (obs.xy[:, c] - z) * w
