@@ -8,6 +8,7 @@ leaves nothing that looks complete.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import typer
@@ -90,7 +91,7 @@ def headset(
     Exit status: 0 done; 2 bad input (the message names it); 3 the estimator diverged.
     """
     check_out(out, overwrite)
-    from viotb.envs.run.headset import HeadsetOptions, run_headset
+    from viotb.envs.run.headset import HEADSET_MSCKF, HeadsetOptions, run_headset
     from viotb.envs.run.headset_report import headset_result
     from viotb.envs.run.loop_glue import loop_options
     from viotb.envs.tools.headset_viz import write_headset_outputs
@@ -105,10 +106,6 @@ def headset(
                     f"klt (got {estimator!r}, {cameras} camera(s), {frontend!r}; the sim front end's cam1 "
                     "noise is its own pixel noise)"
                 )
-            from dataclasses import replace
-
-            from viotb.envs.run.headset import HEADSET_MSCKF
-
             msckf = replace(HEADSET_MSCKF, right_pixel_sigma_px=right_pixel_sigma)
         opts = HeadsetOptions(
             estimator=estimator,
