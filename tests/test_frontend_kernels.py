@@ -131,3 +131,61 @@ def test_parallel_anchoring_gives_the_sequential_tracks_bit_for_bit():
         np.testing.assert_array_equal(par.ids, seq.ids)
         np.testing.assert_array_equal(par.uv_px, seq.uv_px)
     assert len(tracks[True][-1]) > 50
+
+
+@pytest.mark.parametrize("projective", [False, True])
+def test_compiled_template_taking_equals_the_numpy_reference(projective):
+    """``take_templates`` against ``take_templates_numpy``: textured, flat and near-singular patches.
+
+    The template is float32 (its mean and RMS summed in float64 here, in float32 pairwise by numpy:
+    round-off of values around 1, 1e-6); the solve matrices come from those templates and from another
+    inversion (Gauss-Jordan against LAPACK), so they agree to the template's round-off, not to float64's.
+    """
+    from viotb.vio.frontend_take_kernel import take_templates
+    from viotb.vio.klt_math import take_templates_numpy
+
+    rng = np.random.default_rng(3)
+    image = _texture(4)[:H_PX, :W_PX].copy()
+    image[150:200, 200:260] = 77.0  # flat: no template there
+    image[20:60, 250:300] = np.tile(np.linspace(0.0, 200.0, 50, dtype=np.float32), (40, 1))  # a ramp: edge
+    uv = np.concatenate(
+        [rng.uniform(8.0, [W_PX - 9.0, H_PX - 9.0], (60, 2)), [[230.0, 175.0], [275.0, 40.0]]]
+    )
+    r = TemplateAnchors(5)._r
+    args = (r, 1e-3, 1.0, projective, 4.0)
+    keep_ref, tmpl_ref, J_ref, Jt_ref = take_templates_numpy(image, uv, *args)
+    keep, tmpl, J, Jt = take_templates(image, uv, *args)
+    np.testing.assert_array_equal(keep, keep_ref)
+    assert 25 <= keep.sum() < len(uv) and not keep[-2]  # textured ones kept, the flat patch refused
+    np.testing.assert_allclose(tmpl[keep], tmpl_ref[keep], rtol=0.0, atol=1e-5)
+    scale = np.abs(J_ref[keep]).max(axis=-1, keepdims=True) + 1e-30
+    np.testing.assert_allclose(J[keep] / scale, J_ref[keep] / scale, rtol=0.0, atol=1e-5)
+    # J T sums 121 products that partly cancel: compared on the scale of its track's largest entry.
+    jt_scale = np.abs(Jt_ref[keep]).max(axis=(1, 2))[:, None, None]
+    np.testing.assert_allclose(Jt[keep] / jt_scale, Jt_ref[keep] / jt_scale, rtol=0.0, atol=1e-5)
+    assert J.shape[2] == (8 if projective else 6)
+    # The stored rows a fit does not have are zero (the alignment reads only its own rows).
+    assert not np.any(J[:, 0, :4]) and not np.any(J[:, 1, 6:])
+
+
+def test_template_store_holds_the_compiled_templates_for_refining():
+    """``TemplateAnchors.take`` with either implementation stores templates that refine alike."""
+    texture = _texture(6)
+    gx, gy = np.meshgrid(np.linspace(10.0, W_PX - 11.0, 10), np.linspace(10.0, H_PX - 11.0, 8))
+    uv0 = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    ids = np.arange(len(uv0))
+    stores = {}
+    for compiled in (False, True):
+        a = TemplateAnchors(5, iterations=2, projective_after_px=20.0, compiled=compiled)
+        a.take(_frame(texture, 0), ids, uv0)
+        stores[compiled] = a
+    np.testing.assert_array_equal(stores[True].ids, stores[False].ids)
+    X = np.c_[uv0, np.ones(len(uv0))] @ np.linalg.inv(_homography(0)).T @ _homography(1).T
+    start = X[:, :2] / X[:, 2:] + np.random.default_rng(1).normal(0.0, 0.3, uv0.shape)
+    for s in stores.values():
+        s.compiled = True  # the same alignment kernel, so only the templates differ
+    uv_ref, ok_ref = stores[False].refine(_frame(texture, 1), ids, start)
+    uv_new, ok_new = stores[True].refine(_frame(texture, 1), ids, start)
+    np.testing.assert_array_equal(ok_new, ok_ref)
+    assert ok_ref.sum() > 25
+    np.testing.assert_allclose(uv_new, uv_ref, rtol=0.0, atol=1e-4)

@@ -170,8 +170,10 @@ class KltParams:
             world lock 5.32 / 3.99 / 2.49 mm on seeds 0-2).
         anchor_zncc_at_final_warp: ``TemplateAnchors.zncc_at_final_warp`` (True, the default: one more
             remap of all patches per frame).
-        anchor_compiled: ``TemplateAnchors.compiled``: the alignment in a compiled kernel (True, the
-            default; README "MSCKF per frame", session 10) or in numpy (the reference).
+        anchor_compiled: ``TemplateAnchors.compiled``: the alignment (README "MSCKF per frame", session
+            10) and the template taking (session 13: front end wall median 4.19 -> 3.76 ms on ``figure8``,
+            5.20 -> 4.64 ms on ``head-fast-turns``) in compiled kernels (True, the default) or in numpy (the
+            reference).
         parallel_anchoring: With ``fb_check_anchored`` and ``anchor_compiled``: anchor every track the
             forward pass kept in a second thread during the backward pass (both release the GIL), then keep
             those the check kept: the kernel aligns each track on its own and a dropped track ends, so the

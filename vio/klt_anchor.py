@@ -31,29 +31,15 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from viotb.vio.klt_math import _inv_2x2, _normalize, singular_values_2x2
+from viotb.vio.klt_math import (
+    _inv_2x2,
+    _normalize,
+    sample_bilinear,
+    singular_values_2x2,
+    take_templates_numpy,
+)
 
 __all__ = ["TemplateAnchors", "sample_bilinear", "singular_values_2x2"]
-
-
-def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` at pixel coordinates (pixel centres at integers), ``cv2.remap``.
-
-    OpenCV 5 interpolates in float32 at the coordinate itself (OpenCV 4 rounded it to 1/32 px); borders
-    are replicated (:mod:`viotb.vio.frontend_kernels` gives the formula).
-
-    Args:
-        image: Grayscale float32 image, shape (H, W).
-        x: Column coordinates (px), shape (N, P).
-        y: Row coordinates (px), shape (N, P).
-
-    Returns:
-        float32 samples, shape (N, P).
-    """
-    mx = np.ascontiguousarray(x, dtype=np.float32)
-    my = np.ascontiguousarray(y, dtype=np.float32)
-    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(x.shape)
 
 
 class TemplateAnchors:
@@ -95,7 +81,9 @@ class TemplateAnchors:
             (``KltParams.anchor_zncc_at_final_warp``, off by default: README "MSCKF per frame").
         compiled: Align with the compiled kernel :func:`viotb.vio.frontend_kernels.align_templates` (one
             loop over the tracks, the same steps; positions agree with this module's numpy code, the
-            reference, to round-off); False: the numpy code.
+            reference, to round-off) and take templates with
+            :func:`viotb.vio.frontend_take_kernel.take_templates` (the numpy reference:
+            :func:`viotb.vio.klt_math.take_templates_numpy`); False: the numpy code.
     """
 
     def __init__(
@@ -119,11 +107,6 @@ class TemplateAnchors:
         gy, gx = np.meshgrid(r, r, indexing="ij")
         self._dx, self._dy = gx.ravel(), gy.ravel()
         self._r = r
-        # One extra ring, for the central-difference gradients of the template.
-        r1 = np.arange(-half_size_px - 1, half_size_px + 2, dtype=float)
-        gy1, gx1 = np.meshgrid(r1, r1, indexing="ij")
-        self._dx1, self._dy1 = gx1.ravel(), gy1.ravel()
-        self._side1 = r1.size
         self.half = half_size_px
         self.iterations = iterations
         self.max_shift_px = max_shift_px
@@ -245,53 +228,30 @@ class TemplateAnchors:
         ids, uv = ids[ok], uv[ok]
         if len(ids) == 0:
             return
-        side1 = self._side1
-        big = sample_bilinear(image, uv[:, :1] + self._dx1, uv[:, 1:] + self._dy1).reshape(-1, side1, side1)
-        inner = big[:, 1:-1, 1:-1].reshape(len(ids), -1)
-        tmpl, rms = _normalize(inner)
-        scale = 1.0 / np.maximum(rms, 1e-9)[:, None]
-        gx = 0.5 * (big[:, 1:-1, 2:] - big[:, 1:-1, :-2]).reshape(len(ids), -1) * scale
-        gy = 0.5 * (big[:, 2:, 1:-1] - big[:, :-2, 1:-1]).reshape(len(ids), -1) * scale
-        # Steepest-descent images, transposed (N, 6, P): the template gradient times dW/dp at p = 0 of
-        # W(x; p) = (I + [[p1, p3], [p2, p4]]) x + (p5, p6) (Baker & Matthews 2004, sec. 2).
-        dx, dy = self._dx, self._dy
-        sd_t = np.stack([gx * dx, gy * dx, gx * dy, gy * dy, gx, gy], axis=1)
-        hess = np.matmul(sd_t, sd_t.transpose(0, 2, 1))
-        hess += self.damping * hess[:, np.arange(6), np.arange(6)][:, :, None] * np.eye(6)
-        keep = (rms >= self.min_texture) & (np.linalg.det(hess) > 0.0)
-        if not np.any(keep):
-            return
-        sd_t, hess, tmpl = sd_t[keep], hess[keep], tmpl[keep]
-        J = np.matmul(np.linalg.inv(hess), sd_t)
-        J_t = np.matmul(np.linalg.inv(hess[:, 4:, 4:]), sd_t[:, 4:])
-        slots = self._slots(int(keep.sum()))
-        if self._projective:
-            # The homography's two more steepest-descent images: dW/dp7 = -(x^2, x y), dW/dp8 = -(x y, y^2)
-            # (W = H(p) x with H's last row (p7, p8, 1); Baker & Matthews 2004, sec. 2 and 3.2).
-            radial = gx[keep] * dx + gy[keep] * dy
-            sd_h = np.concatenate([sd_t, np.stack([-dx * radial, -dy * radial], axis=1)], axis=1)
-            hess_h = np.matmul(sd_h, sd_h.transpose(0, 2, 1))
-            damp = np.full(8, self.damping)
-            damp[6:] = self.projective_damping
-            hess_h += hess_h[:, np.arange(8), np.arange(8)][:, :, None] * np.diag(damp)
-            J_h = np.matmul(np.linalg.inv(hess_h), sd_h)
-            self._J[slots, 2] = J_h
-            self._J_tmpl[slots, 2] = np.matmul(J_h, tmpl[:, :, None].astype(float))[:, :, 0]
+        if self.compiled:
+            from viotb.vio.frontend_take_kernel import take_templates  # numba: not on the CLI's import path
+        else:
+            take_templates = take_templates_numpy
+        args = (self.damping, self.projective_damping, self._projective, self.min_texture)
+        keep, tmpl, J, J_tmpl = take_templates(image, np.ascontiguousarray(uv), self._r, *args)
+        if np.any(keep):
+            self._store(ids[keep], uv[keep], tmpl[keep], J[keep], J_tmpl[keep])
+
+    def _store(
+        self, ids: np.ndarray, uv: np.ndarray, tmpl: np.ndarray, J: np.ndarray, J_tmpl: np.ndarray
+    ) -> None:
+        """Put new templates (N, P) and their solve matrices (N, 3, W, P), (N, 3, W) into free slots."""
+        slots = self._slots(len(ids))
         self._tmpl[slots] = tmpl
-        self._J[slots, :2] = 0.0
-        self._J_tmpl[slots, :2] = 0.0
-        self._J[slots, 0, 4:6] = J_t
-        self._J[slots, 1, :6] = J
-        self._J_tmpl[slots, 0, 4:6] = np.matmul(J_t, tmpl[:, :, None].astype(float))[:, :, 0]
-        self._J_tmpl[slots, 1, :6] = np.matmul(J, tmpl[:, :, None].astype(float))[:, :, 0]
+        self._J[slots] = J
+        self._J_tmpl[slots] = J_tmpl
         self._g[slots] = 0.0
         self._A[slots] = np.eye(2)
-        self._uv0[slots] = uv[keep]
-        kept = ids[keep]
-        if kept.max() >= len(self._slot_by_id):
-            grow = max(int(kept.max()) + 1, 2 * len(self._slot_by_id), 256) - len(self._slot_by_id)
+        self._uv0[slots] = uv
+        if ids.max() >= len(self._slot_by_id):
+            grow = max(int(ids.max()) + 1, 2 * len(self._slot_by_id), 256) - len(self._slot_by_id)
             self._slot_by_id = np.concatenate([self._slot_by_id, np.full(grow, -1, dtype=np.int64)])
-        self._slot_by_id[kept] = slots
+        self._slot_by_id[ids] = slots
 
     def drop(self, ids: np.ndarray) -> None:
         """Forget the templates of ``ids`` (absent ids are ignored)."""
