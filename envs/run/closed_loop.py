@@ -116,9 +116,12 @@ class ClosedLoopSim:
             params = replace(params, pixel_sigma_px=config.sim_pixel_sigma_px)
             window_params = replace(window_params, pixel_sigma_px=config.sim_pixel_sigma_px)
         if config.online_calibration:
-            if config.estimator != "msckf":
-                raise ValueError(f"online calibration needs the msckf estimator, got {config.estimator!r}")
+            if config.estimator not in ("msckf", "window"):
+                raise ValueError(
+                    f"online calibration needs the msckf or window estimator, got {config.estimator!r}"
+                )
             params = params.with_online_calibration()
+            window_params = window_params.with_online_calibration()
         make = partial(
             make_estimator,
             config.estimator,

@@ -44,8 +44,9 @@ class RigConfig:
             how an estimator and the runner behave when the estimate becomes unusable; None = healthy.
         faults: Calibration / IMU errors (:class:`~viotb.envs.sim.faults.SensorFaults`): what the estimator is
             told and fed, not the truth.
-        online_calibration: Estimate the time offset and the extrinsics online (MSCKF,
-            :meth:`~viotb.vio.msckf.MsckfParams.with_online_calibration`).
+        online_calibration: Estimate the time offset and the extrinsics online (MSCKF:
+            :meth:`~viotb.vio.msckf.MsckfParams.with_online_calibration`; window:
+            :meth:`~viotb.vio.window_params.WindowParams.with_online_calibration`).
         msckf: MSCKF settings (None: the defaults); the ``sim`` front end still sets its pixel noise.
         window: Window-optimizer settings (None: the defaults); likewise.
         lights_off_intervals_s: ``((start, end), ...)`` on the IMU clock (s) in which every light of the

@@ -34,7 +34,9 @@ def fly(
     frontend: str = frontend_option(help_text="klt (rendered images) or sim (fast mode)."),
     out: Path | None = typer.Option(None, "--out", help="Write plots and metrics.json here (new/empty)."),
     calibrate: bool = typer.Option(
-        False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (MSCKF)."
+        False,
+        "--calibrate",
+        help="Estimate the camera-IMU time offset and extrinsics online (msckf or window).",
     ),
     severity: float | None = typer.Option(None, "--severity", help="Severity of a fly-fail-* scenario."),
     loop_closure: bool | None = typer.Option(
