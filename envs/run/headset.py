@@ -76,6 +76,11 @@ class HeadsetOptions:
         loop: Loop closure beside the estimator (``klt`` only; :class:`FlightLoopClosure`): the pose at IMU
             rate is the estimate with the closer's correction in force (a session started with
             ``loop.map_in`` continues in the saved room's frame once it recognizes it). None: off.
+        time_offset_error_s: Error of the camera-IMU time offset the estimator is told (s): the rig's
+            clocks are as before, the calibration given to the estimator (and the loop closer) has its
+            ``time_offset_s`` plus this (a sync error to diagnose; the health monitor names it).
+        online_calibration: Estimate the time offset and the extrinsics online (``msckf``:
+            :meth:`~viotb.vio.msckf_params.MsckfParams.with_online_calibration`; ``window``: its own).
     """
 
     estimator: str = "msckf"
@@ -92,6 +97,8 @@ class HeadsetOptions:
     gyro_noise_inflation: float | None = None
     display: DisplayPoseParams | None = field(default_factory=DisplayPoseParams)
     loop: LoopOptions | None = None
+    time_offset_error_s: float = 0.0
+    online_calibration: bool = False
 
 
 # The MSCKF's default keyframe rule (a clone every 6th frame unless the view moved 3 px) suits a drone; on a
@@ -253,11 +260,11 @@ def _check(scenario, opts: HeadsetOptions) -> None:
         )
     if opts.cameras not in (1, 2):
         raise ValueError(f"cameras must be 1 or 2, got {opts.cameras}")
-    if opts.cameras == 2 and "image_right" not in CameraFrame.__dataclass_fields__:
-        raise ValueError(
-            "--cameras 2 needs the stereo estimators (CameraFrame.image_right, "
-            "make_estimator(calib_right=)), which are not merged into this build yet; use --cameras 1"
-        )
+    if not (np.isfinite(opts.time_offset_error_s) and abs(opts.time_offset_error_s) <= 0.1):
+        ms = opts.time_offset_error_s * 1e3
+        raise ValueError(f"time offset error must be within +-100 ms, got {ms} ms")
+    if opts.online_calibration and opts.estimator not in ("msckf", "window"):
+        raise ValueError(f"online calibration needs --estimator msckf or window, got {opts.estimator!r}")
     if opts.frontend not in ("klt", "sim"):
         raise ValueError(f"unknown front end {opts.frontend!r}; allowed: klt, sim")
     if opts.loop is not None:
@@ -343,13 +350,17 @@ def run_headset(
     if opts.frontend == "sim":
         msckf = replace(msckf, pixel_sigma_px=opts.sim_pixel_sigma_px)
         window = replace(window, pixel_sigma_px=opts.sim_pixel_sigma_px)
-    stereo = {"calib_right": rig.calibs[1]} if opts.cameras == 2 else {}
+    if opts.online_calibration:
+        msckf, window = msckf.with_online_calibration(), window.with_online_calibration()
+    err = opts.time_offset_error_s
+    told = [replace(c, time_offset_s=c.time_offset_s + err) for c in rig.calibs]
+    stereo = {"calib_right": told[1]} if opts.cameras == 2 else {}
     inflation = opts.gyro_noise_inflation
     if inflation is None:
         inflation = default_gyro_noise_inflation(opts.estimator, msckf)
     est = make_estimator(
         opts.estimator,
-        rig.calibs[0],
+        told[0],
         estimator_imu_noise(imu_params.noise, inflation),
         frontend=opts.frontend,
         params=msckf,
@@ -358,7 +369,7 @@ def run_headset(
     )
     predictor = DisplayPosePredictor(replace(opts.prediction, latency_s=opts.latency_s))
     display = DisplayPoseFilter(opts.display) if opts.display is not None else None
-    lc = None if opts.loop is None else FlightLoopClosure(opts.loop, rig.calibs[0], opts.frontend)
+    lc = None if opts.loop is None else FlightLoopClosure(opts.loop, told[0], opts.frontend)
     last_image: np.ndarray | None = None
     monitor, active = HealthMonitor(), []  # the monitor's conditions, as `viotb eval` reports them
 

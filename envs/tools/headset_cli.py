@@ -72,6 +72,16 @@ def headset(
         "cam1 is matched from cam0 every frame, so it carries cam0's error plus the match's; README: 0.2 "
         "makes the walk consistent).",
     ),
+    calibrate: bool = typer.Option(
+        False, "--calibrate", help="Estimate the camera-IMU time offset and extrinsics online (msckf, window)"
+    ),
+    time_offset_error_ms: float = typer.Option(
+        0.0,
+        "--time-offset-error-ms",
+        min=-100.0,
+        max=100.0,
+        help="Tell the estimator a camera-IMU time offset this far off (ms): a sync error to diagnose.",
+    ),
     no_display_filter: bool = typer.Option(
         False,
         "--no-display-filter",
@@ -118,6 +128,8 @@ def headset(
             gyro_noise_inflation=gyro_noise_inflation,
             msckf=msckf,
             loop=loop_options(loop_closure, map_in, map_out),
+            time_offset_error_s=time_offset_error_ms * 1e-3,
+            online_calibration=calibrate,
             **({"display": None} if no_display_filter else {}),
         )
         with atomic_out_dir(out, overwrite) as tmp_dir, progress(f"headset {scenario}", not quiet) as report:
