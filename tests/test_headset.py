@@ -218,6 +218,7 @@ def test_viotb_headset_json_keys_and_files(tmp_path):
     for key in DESIGN_KEYS:
         assert key in result
     assert result["pose_rate_hz"] == pytest.approx(1000.0, rel=1e-3)
+    assert result["time_offset_error_ms"] == 0.0 and result["online_calibration"] is False
     assert result["world_lock_ate_mm"] is not None and result["ms_per_frame_median"] > 0.0
     for name in (
         "estimate_tum.txt",

@@ -63,6 +63,8 @@ def headset_result(run: HeadsetRun, params: HeadsetMetricParams | None = None) -
         "cameras": o.cameras,
         "latency_ms": 1e3 * o.latency_s,
         "seed": o.seed,
+        "time_offset_error_ms": 1e3 * o.time_offset_error_s,
+        "online_calibration": o.online_calibration,
         "frames": int(len(run.ms_per_frame)),
         "poses": int(len(run.t_s)),
         "diverged": bool(run.failure),
