@@ -16,7 +16,12 @@ FIGURES = {
         "physics_steps_per_s",
     ),
     "record": ("realtime_factor_median", "realtime_factor"),
-    "estimator": ("ms_per_frame_median", "ms_per_frame_p99"),
+    "estimator": (
+        "ms_per_frame_median",
+        "ms_per_frame_p99",
+        "window_ms_per_frame_median",
+        "window_ms_per_frame_p99",
+    ),
     "closed_loop": (
         "realtime_factor_klt_median",
         "realtime_factor_sim_median",

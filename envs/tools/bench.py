@@ -5,7 +5,8 @@ Figures are medians over repeats (software GL has a slow mode about one run in t
 
 - ``render``: render ms/frame at 320x240 and 640x480, physics steps/s (:mod:`viotb.envs.tools.bench_render`);
 - ``record``: real-time factor of ``viotb record figure8`` (320x240, 20 Hz camera, 200 Hz IMU);
-- ``estimator``: MSCKF median / p99 ms per frame (KLT tracking + update) on that recording;
+- ``estimator``: MSCKF median / p99 ms per frame (KLT tracking + update) on that recording, and the
+  ``window`` optimizer's (``window_*`` keys);
 - ``closed_loop``: ``realtime_factor`` of ``viotb fly fly-hover`` with the image front end and in sim mode,
   and ``cpu_realtime_factor`` (simulated seconds per CPU second of the process: stable on a shared machine);
 - ``gym``: ``viotb/Hover-v0`` env steps/s and real-time factor per estimator set-up, one env and a vector of
@@ -71,10 +72,11 @@ def run_bench(
         if "estimator" in sections:
             from viotb.envs.data.evaluate import EvalOptions, evaluate_dataset
 
+            keys = ("ms_per_frame_median", "ms_per_frame_p99", "frames", "ate_posyaw_m")
             ev = evaluate_dataset(rec_dir, Path(tmp) / "eval", EvalOptions("msckf", "klt"))
-            out["estimator"] = {
-                k: ev.get(k) for k in ("ms_per_frame_median", "ms_per_frame_p99", "frames", "ate_posyaw_m")
-            }
+            out["estimator"] = {k: ev.get(k) for k in keys}
+            ev = evaluate_dataset(rec_dir, Path(tmp) / "eval_window", EvalOptions("window", "klt"))
+            out["estimator"].update({f"window_{k}": ev.get(k) for k in keys})
         done += 1
         if progress:
             progress(done, len(SECTIONS))
