@@ -15,6 +15,7 @@ from a Gauss-Jordan elimination instead of LAPACK's, so the stored matrices agre
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -188,3 +189,26 @@ def take_templates(
                 continue
         keep[k] = True
     return keep, tmpl, J, J_tmpl
+
+
+@functools.cache
+def warm_up(half_size_px: int, projective: bool) -> None:
+    """Load (or, on a machine's first run, compile) the anchoring's kernels with their call types, once.
+
+    Numba loads a cached kernel on its first call in a process (measured 0.3 s for :func:`take_templates`
+    in a fresh process), which would otherwise land in a timed frame: in a 201-frame replay, the p99 frame
+    time. :class:`viotb.vio.klt_anchor.TemplateAnchors` calls this when it is built with ``compiled``, as
+    :mod:`viotb.vio.imu_kernels_calls` does for the propagation; it runs once per process and template
+    size. The image is a fixed synthetic texture, so no random state is touched.
+    """
+    from viotb.vio.frontend_kernels import align_templates
+
+    n = 4 * half_size_px + 8
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    image = np.ascontiguousarray(128.0 + 60.0 * np.sin(0.7 * xx) * np.cos(0.5 * yy), dtype=np.float32)
+    r = np.arange(-half_size_px, half_size_px + 1, dtype=float)
+    uv = np.array([[0.5 * n, 0.5 * n]])
+    keep, tmpl, J, J_tmpl = take_templates(image, uv, r, 1e-3, 1.0, projective, 4.0)
+    rows, mode = np.zeros(1, dtype=np.int64), np.ones(1, dtype=np.int64)
+    A, g = np.eye(2)[None].copy(), np.zeros((1, 2))
+    align_templates(image, uv, A, g, rows, mode, J, J_tmpl, tmpl, r, 1, 0.0, True)

@@ -134,6 +134,10 @@ class TemplateAnchors:
         self._A = np.zeros((0, 2, 2))  # current linear warps (S, 2, 2)
         self._g = np.zeros((0, 2))  # current projective rows (S, 2), 1/px; zero while affine
         self._uv0 = np.zeros((0, 2))  # where each template was taken (S, 2)
+        if compiled:
+            from viotb.vio.frontend_take_kernel import warm_up  # numba: not on the CLI's import path
+
+            warm_up(half_size_px, self._projective)
 
     @property
     def ids(self) -> np.ndarray:
