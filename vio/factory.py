@@ -12,6 +12,8 @@ from viotb.vio.window import WindowEstimator, WindowParams
 
 ESTIMATOR_NAMES = ("msckf", "window", "imu-only", "ground-truth")
 FRONTEND_NAMES = ("klt", "sim")
+CALIBRATING_ESTIMATORS = ("msckf", "window")
+"""Estimators that estimate the camera-IMU time offset and extrinsics online (``with_online_calibration``)."""
 
 
 def make_estimator(

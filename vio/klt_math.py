@@ -93,22 +93,22 @@ def take_templates_numpy(
     keep = (rms >= min_texture) & (np.linalg.det(hess) > 0.0)
     if not np.any(keep):
         return keep, tmpl, J_all, J_tmpl
-    sd_t, hess, t64 = sd_t[keep], hess[keep], tmpl[keep][:, :, None].astype(float)
+    rows = np.flatnonzero(keep)
+    sd_t, hess, t64 = sd_t[rows], hess[rows], tmpl[rows][:, :, None].astype(float)
     J = np.matmul(np.linalg.inv(hess), sd_t)
     J_t = np.matmul(np.linalg.inv(hess[:, 4:, 4:]), sd_t[:, 4:])
     if projective:
         # The homography's two more steepest-descent images: dW/dp7 = -(x^2, x y), dW/dp8 = -(x y, y^2)
         # (W = H(p) x with H's last row (p7, p8, 1); Baker & Matthews 2004, sec. 2 and 3.2).
-        radial = gx[keep] * dx + gy[keep] * dy
+        radial = gx[rows] * dx + gy[rows] * dy
         sd_h = np.concatenate([sd_t, np.stack([-dx * radial, -dy * radial], axis=1)], axis=1)
         hess_h = np.matmul(sd_h, sd_h.transpose(0, 2, 1))
         damp = np.full(8, damping)
         damp[6:] = projective_damping
         hess_h += hess_h[:, np.arange(8), np.arange(8)][:, :, None] * np.diag(damp)
         J_h = np.matmul(np.linalg.inv(hess_h), sd_h)
-        J_all[keep, 2] = J_h
-        J_tmpl[keep, 2] = np.matmul(J_h, t64)[:, :, 0]
-    rows = np.flatnonzero(keep)
+        J_all[rows, 2] = J_h
+        J_tmpl[rows, 2] = np.matmul(J_h, t64)[:, :, 0]
     J_all[rows, 0, 4:6] = J_t
     J_all[rows, 1, :6] = J
     J_tmpl[rows, 0, 4:6] = np.matmul(J_t, t64)[:, :, 0]

@@ -27,7 +27,7 @@ from viotb.envs.data.tum import write_tum
 from viotb.envs.run.loop_glue import apply_loop_closure
 from viotb.envs.run.replay import MonitoredRun, replay
 from viotb.envs.tools.outdir import atomic_out_dir
-from viotb.vio.factory import make_estimator
+from viotb.vio.factory import CALIBRATING_ESTIMATORS, make_estimator
 from viotb.vio.health import HealthMonitor, HealthParams
 from viotb.vio.lie import rotmat_to_quat_wxyz
 from viotb.vio.metrics import evaluate_trajectory
@@ -69,7 +69,7 @@ def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | No
     stereo = {"calib_right": ds.calib_right} if opts.cameras == 2 else {}
     params, window = opts.msckf, opts.window
     if opts.calibrate:
-        if opts.estimator not in ("msckf", "window"):
+        if opts.estimator not in CALIBRATING_ESTIMATORS:
             raise ValueError(
                 f"--calibrate needs the msckf or window estimator (online time-offset and extrinsic "
                 f"calibration); {opts.estimator!r} has none"

@@ -31,7 +31,7 @@ from viotb.envs.sim.render import OffscreenRenderer, SceneLights, camera_calibra
 from viotb.envs.sim.rig import RigConfig
 from viotb.envs.sim.simulation import Simulation
 from viotb.models.constants import ONBOARD_CAMERA, QUAD_BODY, SCENE_BOUNDS_M
-from viotb.vio.factory import make_estimator
+from viotb.vio.factory import CALIBRATING_ESTIMATORS, make_estimator
 from viotb.vio.msckf import MsckfParams
 from viotb.vio.recovery import RECOVERABLE_ESTIMATORS, RecoveringEstimator, cold_start_msckf_params
 from viotb.vio.types import CameraFrame, FeatureObservations, HealthStatus, ImuSample, StateEstimate
@@ -116,7 +116,7 @@ class ClosedLoopSim:
             params = replace(params, pixel_sigma_px=config.sim_pixel_sigma_px)
             window_params = replace(window_params, pixel_sigma_px=config.sim_pixel_sigma_px)
         if config.online_calibration:
-            if config.estimator not in ("msckf", "window"):
+            if config.estimator not in CALIBRATING_ESTIMATORS:
                 raise ValueError(
                     f"online calibration needs the msckf or window estimator, got {config.estimator!r}"
                 )

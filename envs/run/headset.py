@@ -35,7 +35,7 @@ from viotb.envs.sim.camera_timing import frame_schedule
 from viotb.envs.sim.imu_model import ImuModel, imu_preset
 from viotb.models.constants import HEADSET_CAMERAS, VEHICLE_BODIES
 from viotb.vio.display_pose import DisplayPoseFilter, DisplayPoseParams
-from viotb.vio.factory import make_estimator
+from viotb.vio.factory import CALIBRATING_ESTIMATORS, make_estimator
 from viotb.vio.frontend import KltParams
 from viotb.vio.headset_metrics import (
     interpolate_poses,
@@ -263,7 +263,7 @@ def _check(scenario, opts: HeadsetOptions) -> None:
     if not (np.isfinite(opts.time_offset_error_s) and abs(opts.time_offset_error_s) <= 0.1):
         ms = opts.time_offset_error_s * 1e3
         raise ValueError(f"time offset error must be within +-100 ms, got {ms} ms")
-    if opts.online_calibration and opts.estimator not in ("msckf", "window"):
+    if opts.online_calibration and opts.estimator not in CALIBRATING_ESTIMATORS:
         raise ValueError(f"online calibration needs --estimator msckf or window, got {opts.estimator!r}")
     if opts.frontend not in ("klt", "sim"):
         raise ValueError(f"unknown front end {opts.frontend!r}; allowed: klt, sim")
