@@ -226,3 +226,20 @@ def test_a_reexpressed_correction_keeps_every_corrected_pose_where_it_was():
         p_new = after.value(t_s) @ x_new
         np.testing.assert_allclose(p_new.p, p_old.p, atol=tol)
         np.testing.assert_allclose(p_new.R, p_old.R, atol=1e-12)
+
+
+def test_a_forced_keyframe_ties_the_last_frame_of_a_run_to_the_graph(scene):
+    # A run that ends standing still: its last frame is no keyframe by the motion rule, and becomes one
+    # when forced (``run_loop_closure`` forces the last frame of a recording).
+    texture, calib = scene
+    closer = LoopCloser(PARAMS)
+    fly(closer, scene, 0.0, 1.0, RigidTransform.identity(), scale=0.0)
+    last = closer.db.keyframes[-1]
+    T = RigidTransform(last.R_WB_odom, last.p_WB_odom)
+    image = render(texture, calib, T)
+    n = len(closer.db)
+    closer.add_frame(last.t_s + 0.1, image, T.R, T.p, calib)
+    assert len(closer.db) == n
+    closer.add_frame(last.t_s + 0.2, image, T.R, T.p, calib, force_keyframe=True)
+    assert len(closer.db) == n + 1 and closer.db.keyframes[-1].t_s == pytest.approx(last.t_s + 0.2)
+    assert closer.db.keyframes[-1].index in closer.graph  # in the graph, with its odometry edge

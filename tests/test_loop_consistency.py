@@ -80,3 +80,51 @@ def test_a_stale_candidate_expires():
     assert gate.confirm(_loop(q1, match, RigidTransform(np.eye(3), np.array([0.0, 0.0, 1.0]))), X_AXIS) == []
     gate.expire(24.0)
     assert gate.pending is None and gate.unconfirmed == 1
+
+
+def _revisit(n: int, spacing_s: float = 0.35):
+    """``n`` query keyframes 0.3 m apart with the same odometry drift, their matches and true map poses."""
+    drift = RigidTransform.from_yaw(np.deg2rad(3.0), np.array([0.2, -0.1, 0.05]))
+    out = []
+    for i in range(n):
+        truth = RigidTransform(np.eye(3), np.array([0.02 + 0.3 * i, 0.0, 1.0]))
+        odo = drift @ truth
+        q = _kf(60 + i, 20.0 + spacing_s * i, 0.0, odo.p, mapped=False)
+        q.R_WB_odom = odo.R
+        out.append((q, _kf(i, 0.3 * i, 0.0, [0.3 * i, 0.0, 1.0]), truth))
+    return out
+
+
+def test_the_latest_accepted_loop_confirms_the_next_candidate_at_once():
+    (q1, m1, t1), (q2, m2, t2), (q3, m3, t3) = _revisit(3)
+    gate = ConsistencyGate(ConsistencyParams())
+    assert gate.confirm(_loop(q1, m1, t1), X_AXIS) == []
+    assert len(gate.confirm(_loop(q2, m2, t2), X_AXIS)) == 2  # the pair
+    # The third agrees with the accepted second: accepted at its own keyframe, nothing left pending.
+    assert [c.query.index for c in gate.confirm(_loop(q3, m3, t3), X_AXIS)] == [62]
+    assert gate.pending is None
+    # A look-alike 0.5 m off at the third keyframe is not accepted by the accepted loop: it is held.
+    gate = ConsistencyGate(ConsistencyParams())
+    gate.confirm(_loop(q1, m1, t1), X_AXIS)
+    gate.confirm(_loop(q2, m2, t2), X_AXIS)
+    wrong = _loop(q3, m3, t3, shift=(0.0, 0.5, 0.0))
+    assert gate.confirm(wrong, X_AXIS) == [] and gate.pending is wrong
+    # Without the rule, the third waits for a fourth as before.
+    gate = ConsistencyGate(ConsistencyParams(confirm_by_accepted=False))
+    gate.confirm(_loop(q1, m1, t1), X_AXIS)
+    gate.confirm(_loop(q2, m2, t2), X_AXIS)
+    assert gate.confirm(_loop(q3, m3, t3), X_AXIS) == []
+
+
+def test_an_accepted_loop_confirms_only_within_the_window_and_its_sequence():
+    (q1, m1, t1), (q2, m2, t2), (q3, m3, t3) = _revisit(3, spacing_s=2.0)
+    gate = ConsistencyGate(ConsistencyParams(confirm_window_s=3.0))
+    gate.confirm(_loop(q1, m1, t1), X_AXIS)
+    gate.confirm(_loop(q2, m2, t2), X_AXIS)
+    q3.t_s = q2.t_s + 3.5  # later than the window after the accepted loop
+    assert gate.confirm(_loop(q3, m3, t3), X_AXIS) == []
+    gate = ConsistencyGate(ConsistencyParams())
+    gate.confirm(_loop(q1, m1, t1), X_AXIS)
+    gate.confirm(_loop(q2, m2, t2), X_AXIS)
+    q3.t_s, q3.sequence = q2.t_s + 0.35, 1  # a new odometry sequence (after a tracking loss)
+    assert gate.confirm(_loop(q3, m3, t3), X_AXIS) == []

@@ -88,13 +88,14 @@ def run_loop_closure(
     tracked = np.array([h["tracked_features"] for h in health]) if health else np.zeros(0)
     corrected: list[StateEstimate] = []
     had_tracks = False
-    for e in estimates:
+    for i, e in enumerate(estimates):
         k = int(np.argmin(np.abs(cam_t_imu - e.t_s)))
         h = int(np.argmin(np.abs(health_t - e.t_s))) if len(health_t) else -1
         if h >= 0 and tracked[h] == 0 and had_tracks:
             closer.notify_tracking_lost()
         had_tracks = h < 0 or tracked[h] > 0
-        closer.add_frame(e.t_s, load_image(ds, k), e.R_WB, e.p_WB, ds.calib)
+        last = i == len(estimates) - 1  # the end of the final trajectory is tied to the graph
+        closer.add_frame(e.t_s, load_image(ds, k), e.R_WB, e.p_WB, ds.calib, force_keyframe=last)
         R, p = closer.corrected_pose(e.t_s, e.R_WB, e.p_WB)
         corrected.append(replace(e, R_WB=R, p_WB=p))
     if opts.map_out is not None:

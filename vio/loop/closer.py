@@ -150,6 +150,7 @@ class LoopCloser:
         calib: CameraCalibration,
         points_W: np.ndarray | None = None,
         points_uv_px: np.ndarray | None = None,
+        force_keyframe: bool = False,
     ) -> LoopClosure | None:
         """Process one camera frame with the estimator's pose.
 
@@ -161,6 +162,9 @@ class LoopCloser:
             calib: Camera calibration (intrinsics, distortion, ``R_BC``, ``p_BC``).
             points_W: Optional landmarks from the estimator (odometry frame, m), shape (M, 3).
             points_uv_px: Their pixels in this image, shape (M, 2).
+            force_keyframe: Make the frame a keyframe whatever its motion: the last frame of a recording,
+                so that the end of the final trajectory is tied to the pose graph (a run that ends back at
+                its start slows down there, and its last keyframe by the motion rule may be a second old).
 
         Returns:
             The loop closure accepted at this frame, or None.
@@ -171,7 +175,8 @@ class LoopCloser:
         if self._lost or gap:
             self._start_sequence(t_s)
         self._last_t_s = float(t_s)
-        if not (self.db.is_keyframe(t_s, R_WB, p_WB, self.sequence) or self._dense_keyframe(t_s)):
+        keyframe = force_keyframe or self.db.is_keyframe(t_s, R_WB, p_WB, self.sequence)
+        if not (keyframe or self._dense_keyframe(t_s)):
             self.timings.append(FrameTiming(t_s, (time.perf_counter() - t0) * 1e3))
             return None
         if self.heading_axis_B is None:

@@ -13,7 +13,10 @@ it, both on the query's map pose that the closure implies, ``T_map_q = T_map_mat
    ``confirm_distinct_match``), and both imply the same drift correction: the later query's
    map pose predicted with the earlier candidate's correction must agree with its own within ``confirm_*``.
    A place that only looks alike rarely gives two consistent poses in a row; relocalization (no prediction
-   to check against) relies on this alone.
+   to check against) relies on this alone. With ``confirm_by_accepted``, the sequence's latest accepted
+   loop, at most ``window_s`` earlier, confirms a new candidate by the same test: while the loops of a
+   revisit keep agreeing, each is accepted at its own keyframe instead of waiting for the next one (which
+   never comes for the last keyframe of a run, where a drone lands back at its start).
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ class ConsistencyGate:
         """No candidate pending."""
         self.params = params or ConsistencyParams()
         self.pending: Candidate | None = None
+        self.last_accepted: Candidate | None = None
         self.rejected_drift = 0
         self.unconfirmed = 0
 
@@ -86,31 +90,50 @@ class ConsistencyGate:
         self.rejected_drift += not ok
         return ok
 
-    def confirm(self, cand: Candidate, axis_B: np.ndarray) -> list[Candidate]:
-        """Offer a candidate; returns the candidates accepted now (empty, or the pending one and this one).
+    def _agrees(self, earlier: Candidate, cand: Candidate, axis_B: np.ndarray) -> bool:
+        """Whether two loops of one sequence, at most ``confirm_window_s`` apart, imply one correction."""
+        cp = self.params
+        if earlier.query.sequence != cand.query.sequence:
+            return False
+        if cand.query.t_s - earlier.query.t_s > cp.confirm_window_s:
+            return False
+        predicted = RigidTransform(*earlier.correction.apply_pose(cand.query.R_WB_odom, cand.query.p_WB_odom))
+        gap_m, gap_deg = pose_gap(cand.T_map_query, predicted, axis_B)
+        return gap_m <= cp.confirm_translation_m and gap_deg <= cp.confirm_yaw_deg
 
-        With ``confirmations == 0`` every candidate is accepted at once.
+    def confirm(self, cand: Candidate, axis_B: np.ndarray) -> list[Candidate]:
+        """Offer a candidate; returns the candidates accepted now (none, this one, or the pending one and it).
+
+        With ``confirmations == 0`` every candidate is accepted at once. Otherwise the pending candidate
+        confirms it (both are accepted), else the latest accepted loop does (``confirm_by_accepted``: it
+        alone is accepted, and a pending candidate that it did not confirm is dropped), else it is held.
         """
         cp = self.params
         if cp.confirmations == 0:
             return [cand]
         prev = self.pending
         self.pending = cand
-        if prev is None or prev.query.sequence != cand.query.sequence:
-            return []
-        if cp.confirm_distinct_match and prev.match.index == cand.match.index:
-            self.pending = prev if cand.query.t_s - prev.query.t_s <= cp.confirm_window_s else cand
-            return []
-        if cand.query.t_s - prev.query.t_s > cp.confirm_window_s:
+        if prev is not None and prev.query.sequence == cand.query.sequence:
+            if cp.confirm_distinct_match and prev.match.index == cand.match.index:
+                self.pending = prev if cand.query.t_s - prev.query.t_s <= cp.confirm_window_s else cand
+                return self._by_accepted(cand, axis_B)
+            if self._agrees(prev, cand, axis_B):
+                self.pending = None
+                self.last_accepted = cand
+                return [prev, cand]
             self.unconfirmed += 1
+        return self._by_accepted(cand, axis_B)
+
+    def _by_accepted(self, cand: Candidate, axis_B: np.ndarray) -> list[Candidate]:
+        """``[cand]`` when the latest accepted loop confirms it (``confirm_by_accepted``), else ``[]``."""
+        last = self.last_accepted
+        if not self.params.confirm_by_accepted or last is None or not self._agrees(last, cand, axis_B):
             return []
-        predicted = RigidTransform(*prev.correction.apply_pose(cand.query.R_WB_odom, cand.query.p_WB_odom))
-        gap_m, gap_deg = pose_gap(cand.T_map_query, predicted, axis_B)
-        if gap_m > cp.confirm_translation_m or gap_deg > cp.confirm_yaw_deg:
+        if self.pending is not cand:  # a held candidate (distinct-match rule) that this one outlives
             self.unconfirmed += 1
-            return []
         self.pending = None
-        return [prev, cand]
+        self.last_accepted = cand
+        return [cand]
 
     def expire(self, t_s: float) -> None:
         """Drop a pending candidate older than ``confirm_window_s`` at ``t_s``."""

@@ -147,6 +147,9 @@ class ConsistencyParams:
             with biased landmarks biases every PnP against it alike). Off by default: at the returns to the
             start the same keyframe is often the only match, and fail-long-loop's return errors grew from
             1.5-2.7 cm to 5.6-7.4 cm with it on; the closure errors stayed within 5 cm / 1 deg either way.
+        confirm_by_accepted: The sequence's latest accepted loop (within ``confirm_window_s``) confirms a new
+            candidate by the same test as a later keyframe would, so a revisit's loops are accepted at their
+            own keyframes, the last keyframe of a run included (``consistency``).
     """
 
     drift_base_m: float = 0.10
@@ -158,6 +161,7 @@ class ConsistencyParams:
     confirm_translation_m: float = 0.03
     confirm_yaw_deg: float = 0.5
     confirm_distinct_match: bool = False
+    confirm_by_accepted: bool = True
 
 
 @dataclass(frozen=True)
