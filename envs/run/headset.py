@@ -267,6 +267,13 @@ def _check(scenario, opts: HeadsetOptions) -> None:
         raise ValueError(f"online calibration needs --estimator msckf or window, got {opts.estimator!r}")
     if opts.frontend not in ("klt", "sim"):
         raise ValueError(f"unknown front end {opts.frontend!r}; allowed: klt, sim")
+    right_sigma = None if opts.msckf is None else opts.msckf.right_pixel_sigma_px
+    if right_sigma is not None and (opts.estimator, opts.cameras, opts.frontend) != ("msckf", 2, "klt"):
+        raise ValueError(
+            f"--right-pixel-sigma {right_sigma} needs --estimator msckf --cameras 2 --frontend klt (got "
+            f"{opts.estimator!r}, {opts.cameras} camera(s), {opts.frontend!r}; the sim front end's cam1 "
+            "noise is its own pixel noise)"
+        )
     if opts.loop is not None:
         require_images(opts.frontend)
     if not (np.isfinite(opts.latency_s) and 0.0 <= opts.latency_s <= 0.2):

@@ -109,13 +109,7 @@ def headset(
 
     try:
         msckf = None
-        if right_pixel_sigma is not None:
-            if estimator != "msckf" or cameras != 2 or frontend != "klt":
-                raise ValueError(
-                    f"--right-pixel-sigma {right_pixel_sigma} needs --estimator msckf --cameras 2 --frontend "
-                    f"klt (got {estimator!r}, {cameras} camera(s), {frontend!r}; the sim front end's cam1 "
-                    "noise is its own pixel noise)"
-                )
+        if right_pixel_sigma is not None:  # checked with the other options (``headset._check``)
             msckf = replace(HEADSET_MSCKF, right_pixel_sigma_px=right_pixel_sigma)
         opts = HeadsetOptions(
             estimator=estimator,

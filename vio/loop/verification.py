@@ -232,6 +232,23 @@ def _reprojection(
         return p_C, f_px * np.linalg.norm(p_C[:, :2] / p_C[:, 2:3] - xy_norm, axis=1)
 
 
+def _inliers_at(
+    points_B: np.ndarray,
+    xy_norm: np.ndarray,
+    R_CB: np.ndarray,
+    p_CB: np.ndarray,
+    f_px: float,
+    threshold_px: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inliers of a pose: in front of the camera and reprojected within ``threshold_px``.
+
+    Returns:
+        ``(mask (N,) bool, p_C (N, 3) m, err_px (N,))``.
+    """
+    p_C, err_px = _reprojection(points_B, xy_norm, R_CB, p_CB, f_px)
+    return (err_px <= threshold_px) & (p_C[:, 2] > 0), p_C, err_px
+
+
 def _align_tilt(
     obj, img, weights, R_CB, p_CB, R_WBq, R_WBm, calib, f_px, params
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -247,8 +264,7 @@ def _align_tilt(
     T_m = rotz(-heading_rad(R_WBm)) @ R_WBm
     A = calib.R_BC.T @ T_q.T
     M = T_q @ calib.R_BC @ R_CB @ T_m.T  # ~ Rz(relative yaw)
-    p_C, err_px = _reprojection(obj, img, R_CB, p_CB, f_px)
-    sel = (err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0)
+    sel = _inliers_at(obj, img, R_CB, p_CB, f_px, params.ransac_threshold_px)[0]
     if sel.sum() < params.min_inliers:
         return R_CB, p_CB
     yaw0 = float(np.arctan2(M[1, 0], M[0, 0]))
@@ -317,16 +333,15 @@ def verify_candidate(
         s_q = np.ones(len(query_uv_px)) if query_octaves is None else s ** np.asarray(query_octaves, float)
         s_m = match.pixel_sigma_scale(s)[lm_rows[il]]
         weights = 2.0 / (s_q[iq] ** 2 + s_m**2)
-        p_C, err_px = _reprojection(obj, img, R_CB, p_CB, f_px)
-        sel = (err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0)
+        sel = _inliers_at(obj, img, R_CB, p_CB, f_px, params.ransac_threshold_px)[0]
         if sel.sum() >= params.min_inliers:
             R_CB, p_CB = refine_pose_weighted(obj[sel], img[sel], weights[sel], R_CB, p_CB)
     if params.gravity_aligned:
         R_CB, p_CB = _align_tilt(
             obj, img, weights, R_CB, p_CB, R_WBq_odom, match.R_WB_odom, calib, f_px, params
         )
-    p_C, err_px = _reprojection(obj, img, R_CB, p_CB, f_px)
-    inliers = np.flatnonzero((err_px <= params.ransac_threshold_px) & (p_C[:, 2] > 0))
+    sel, p_C, err_px = _inliers_at(obj, img, R_CB, p_CB, f_px, params.ransac_threshold_px)
+    inliers = np.flatnonzero(sel)
     if len(inliers) < max(params.min_inliers, params.min_inlier_ratio * len(iq)):
         return Verdict(None, "few inliers")
     rms_px = float(np.sqrt(np.mean(err_px[inliers] ** 2)))
