@@ -1,4 +1,4 @@
-"""``viotb eval --imu-intrinsics / --klt-noise``: the settings reach the MSCKF and the result names them."""
+"""``viotb eval --imu-intrinsics / --klt-noise``: the settings reach the estimator; the result names them."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from viotb.vio.msckf_params import (
     RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
     MsckfParams,
 )
+from viotb.vio.window_params import WindowParams
 
 
 def _eval(tmp_path: Path, *extra: str):
@@ -28,7 +29,10 @@ def _eval(tmp_path: Path, *extra: str):
             ("--imu-intrinsics", "gyro", "--estimator", "window"),
             "--imu-intrinsics gyro needs --estimator msckf",
         ),
-        (("--klt-noise", "render", "--estimator", "window"), "--klt-noise render needs --estimator msckf"),
+        (
+            ("--klt-noise", "render", "--estimator", "imu-only"),
+            "--klt-noise render needs --estimator msckf or window",
+        ),
         (("--klt-noise", "render", "--frontend", "sim"), "a model of the klt front end"),
         (("--imu-intrinsics", "accel"), "unknown IMU intrinsics choice 'accel'"),
     ],
@@ -58,3 +62,21 @@ def test_real_euroc_with_gyro_intrinsics_and_render_noise_reports_its_settings(t
         "track_random_walk_px2_per_px": default.klt.track_random_walk_px2_per_px,
         "imu_intrinsics": "none",
     }
+
+
+def test_the_window_takes_the_render_noise_model_and_the_result_names_it(tmp_path: Path) -> None:
+    """``--estimator window --klt-noise render``: 0.035 px and the track walk as generalized least squares."""
+    res = _eval(tmp_path, "--estimator", "window", "--klt-noise", "render", "--json")
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout)
+    assert out["window_settings"] == {
+        "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
+        "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
+    }
+    assert out["msckf_settings"] is None and out["estimated_frames"] > 0
+    told = WindowParams().with_render_klt_noise()
+    assert told.track_noise and told.huber_threshold == WindowParams().huber_threshold  # gates in sigmas
+    res = _eval(tmp_path, "--estimator", "window", "--json", "--overwrite")
+    assert res.exit_code == 0, res.output
+    default = {"pixel_sigma_px": 1.0, "track_random_walk_px2_per_px": 0.0}
+    assert json.loads(res.stdout)["window_settings"] == default

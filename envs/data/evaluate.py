@@ -87,7 +87,10 @@ def run_monitored(ds: EurocDataset, opts: EvalOptions, progress: ProgressFn | No
         window_params=window,
         **stereo,
     )
-    filter_sigma = (params if params is not None else MsckfParams()).pixel_sigma_px
+    if opts.estimator == "window":
+        filter_sigma = (window if window is not None else WindowParams()).pixel_sigma_px
+    else:
+        filter_sigma = (params if params is not None else MsckfParams()).pixel_sigma_px
     true_calib = diagnosis.read_true_calibration(ds.root) or ds.calib
     rng = np.random.default_rng(opts.seed)
     first, stop = usable_frames(ds, opts)
@@ -129,6 +132,15 @@ def msckf_settings(params: MsckfParams | None) -> dict:
         "pixel_sigma_px": p.pixel_sigma_px,
         "track_random_walk_px2_per_px": p.klt.track_random_walk_px2_per_px,
         "imu_intrinsics": p.imu_intrinsics,
+    }
+
+
+def window_settings(params: WindowParams | None) -> dict:
+    """The window settings a result names: its pixel noise, and the track walk when it models one."""
+    p = params if params is not None else WindowParams()
+    return {
+        "pixel_sigma_px": p.pixel_sigma_px,
+        "track_random_walk_px2_per_px": p.klt.track_random_walk_px2_per_px if p.track_noise else 0.0,
     }
 
 
@@ -187,6 +199,7 @@ def evaluate_dataset(
             "frontend": opts.frontend,
             "cameras": opts.cameras,
             "msckf_settings": None if opts.estimator != "msckf" else msckf_settings(opts.msckf),
+            "window_settings": None if opts.estimator != "window" else window_settings(opts.window),
             "frames": len(ms),
             "estimated_frames": len(estimates),
             "frames_skipped_before_imu": first,

@@ -148,8 +148,8 @@ def eval_(
         "KLT noise model",
         ("default", "render"),
         "The filter's pixel noise: default (1 px, for any camera) or render (the KLT noise measured on this "
-        "project's renders, MsckfParams.with_render_klt_noise; msckf only, for recordings with the right "
-        "calibration).",
+        "project's renders, MsckfParams / WindowParams.with_render_klt_noise; msckf or window, for "
+        "recordings with the right calibration).",
     ),
     monitor: bool = typer.Option(True, "--monitor/--no-monitor", help="Run the health monitor (default on)."),
     write_report: bool = typer.Option(
@@ -178,22 +178,24 @@ def eval_(
     check_out(out, overwrite)
     if calibrate and estimator not in ("msckf", "window"):
         fail(f"--calibrate needs --estimator msckf or window: {estimator!r} has no online calibration")
-    for flag, value, off in (
-        ("--imu-intrinsics", imu_intrinsics, "none"),
-        ("--klt-noise", klt_noise, "default"),
-    ):
-        if value != off and estimator != "msckf":
-            fail(f"{flag} {value} needs --estimator msckf, got {estimator!r}")
+    if imu_intrinsics != "none" and estimator != "msckf":
+        fail(f"--imu-intrinsics {imu_intrinsics} needs --estimator msckf, got {estimator!r}")
+    if klt_noise != "default" and estimator not in ("msckf", "window"):
+        fail(f"--klt-noise {klt_noise} needs --estimator msckf or window, got {estimator!r}")
     if klt_noise != "default" and frontend != "klt":
         fail(f"--klt-noise {klt_noise} is a model of the klt front end, got --frontend {frontend}")
-    msckf = None
-    if imu_intrinsics != "none" or klt_noise != "default":
+    msckf = window = None
+    if estimator == "msckf" and (imu_intrinsics != "none" or klt_noise != "default"):
         from dataclasses import replace
 
         from viotb.vio.msckf_params import MsckfParams
 
         msckf = replace(MsckfParams(), imu_intrinsics=imu_intrinsics)
         msckf = msckf.with_render_klt_noise() if klt_noise == "render" else msckf
+    if estimator == "window" and klt_noise == "render":
+        from viotb.vio.window_params import WindowParams
+
+        window = WindowParams().with_render_klt_noise()
     try:
         from viotb.envs.run.loop_glue import loop_options
 
@@ -207,6 +209,7 @@ def eval_(
             monitor=monitor,
             calibrate=calibrate,
             msckf=msckf,
+            window=window,
             report=write_report,
             rerun=rerun,
             loop=loop,
