@@ -181,12 +181,13 @@ class WindowParams:
         :data:`~viotb.vio.msckf_params.RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX`, as generalized least squares
         over each landmark's views: ``track_noise``); the Huber and outlier thresholds stay in sigmas. For
         the KLT front end on rendered recordings with the right calibration. Measured (README "Consistency
-        per scenario", 20 s KLT renders at 320x240): position NEES and ATE move from 1 px to this model as
-        hover 0.07 / 0.24 cm -> 3.05 / 0.13 cm, ``figure8`` 0.81 / 1.44 -> 5.05 / 0.72, ``circle`` 0.80 /
-        1.27 -> 7.1 / 1.28, ``aggressive`` 8.1 / 2.37 -> 60 / 1.95, ``head-fast-turns`` 6.5 / 3.38 -> 93 /
-        2.50 (seed 0): more accurate, and overconfident where the rotation is fast (the MSCKF with this
-        model is too, until it estimates the gyro's scale and misalignment, which the window does not).
-        Not a default, for the reasons of the MSCKF's.
+        per scenario", 20 s KLT renders at 320x240, seeds 0-2): more accurate on 13 of 15 runs (``figure8``
+        ATE 1.44 / 1.32 / 2.25 -> 0.72 / 0.69 / 1.49 cm) and overconfident (position NEES 1.4-93, against
+        0.07-8.9 told 1 px), most where the rotation is fast. ``aggressive``'s part is the IMU's scale and
+        misalignment, which the window does not estimate: recorded without them, its NEES is 3.2 (ATE
+        0.47 cm); ``head-fast-turns`` stays at 91 without them. Slower: p99 33-42 ms per frame (17-25 ms
+        told 1 px), the views of a landmark being correlated. Not a default, for that and the MSCKF's
+        reasons.
         """
         return replace(
             self,
