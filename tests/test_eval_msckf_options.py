@@ -22,6 +22,13 @@ def _eval(tmp_path: Path, *extra: str):
     return CliRunner().invoke(app, [*args, *extra])
 
 
+def _result(tmp_path: Path, *extra: str) -> dict:
+    """The JSON of a run that must succeed (into the same folder each time)."""
+    res = _eval(tmp_path, *extra, "--json", "--overwrite")
+    assert res.exit_code == 0, res.output
+    return json.loads(res.stdout)
+
+
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
@@ -45,9 +52,7 @@ def test_bad_combinations_are_refused_with_the_flag_named(tmp_path: Path, extra:
 
 def test_real_euroc_with_gyro_intrinsics_and_render_noise_reports_its_settings(tmp_path: Path) -> None:
     """On the real EuRoC micro folder: runs, initializes, and the JSON names what the filter was told."""
-    res = _eval(tmp_path, "--imu-intrinsics", "gyro", "--klt-noise", "render", "--json")
-    assert res.exit_code == 0, res.output
-    out = json.loads(res.stdout)
+    out = _result(tmp_path, "--imu-intrinsics", "gyro", "--klt-noise", "render")
     assert out["msckf_settings"] == {
         "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
         "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
@@ -55,9 +60,7 @@ def test_real_euroc_with_gyro_intrinsics_and_render_noise_reports_its_settings(t
     }
     assert out["estimated_frames"] > 0
     default = MsckfParams()
-    res = _eval(tmp_path, "--json", "--overwrite")
-    assert res.exit_code == 0, res.output
-    assert json.loads(res.stdout)["msckf_settings"] == {
+    assert _result(tmp_path)["msckf_settings"] == {
         "pixel_sigma_px": default.pixel_sigma_px,
         "track_random_walk_px2_per_px": default.klt.track_random_walk_px2_per_px,
         "imu_intrinsics": "none",
@@ -66,9 +69,7 @@ def test_real_euroc_with_gyro_intrinsics_and_render_noise_reports_its_settings(t
 
 def test_the_window_takes_the_render_noise_model_and_the_result_names_it(tmp_path: Path) -> None:
     """``--estimator window --klt-noise render``: 0.035 px and the track walk as generalized least squares."""
-    res = _eval(tmp_path, "--estimator", "window", "--klt-noise", "render", "--json")
-    assert res.exit_code == 0, res.output
-    out = json.loads(res.stdout)
+    out = _result(tmp_path, "--estimator", "window", "--klt-noise", "render")
     assert out["window_settings"] == {
         "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
         "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
@@ -76,7 +77,5 @@ def test_the_window_takes_the_render_noise_model_and_the_result_names_it(tmp_pat
     assert out["msckf_settings"] is None and out["estimated_frames"] > 0
     told = WindowParams().with_render_klt_noise()
     assert told.track_noise and told.huber_threshold == WindowParams().huber_threshold  # gates in sigmas
-    res = _eval(tmp_path, "--estimator", "window", "--json", "--overwrite")
-    assert res.exit_code == 0, res.output
     default = {"pixel_sigma_px": 1.0, "track_random_walk_px2_per_px": 0.0}
-    assert json.loads(res.stdout)["window_settings"] == default
+    assert _result(tmp_path, "--estimator", "window")["window_settings"] == default
