@@ -41,6 +41,7 @@ def _result(tmp_path: Path, *extra: str) -> dict:
             "--klt-noise render needs --estimator msckf or window",
         ),
         (("--klt-noise", "render", "--frontend", "sim"), "a model of the klt front end"),
+        (("--klt-noise", "render", "--estimator", "window", "--calibrate"), "needs white track noise"),
         (("--imu-intrinsics", "accel"), "unknown IMU intrinsics choice 'accel'"),
     ],
 )

@@ -184,6 +184,11 @@ def eval_(
         fail(f"--klt-noise {klt_noise} needs --estimator msckf or window, got {estimator!r}")
     if klt_noise != "default" and frontend != "klt":
         fail(f"--klt-noise {klt_noise} is a model of the klt front end, got --frontend {frontend}")
+    if klt_noise == "render" and estimator == "window" and calibrate:
+        fail(
+            "--klt-noise render with --estimator window cannot --calibrate: the window's online calibration "
+            "needs white track noise (WindowParams.track_noise=False)"
+        )
     msckf = window = None
     if estimator == "msckf" and (imu_intrinsics != "none" or klt_noise != "default"):
         from dataclasses import replace
