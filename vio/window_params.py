@@ -187,7 +187,7 @@ class WindowParams:
         misalignment, which the window does not estimate: recorded without them, its NEES is 3.2 (ATE
         0.47 cm); ``head-fast-turns`` stays at 91 without them. Slower: p99 33-42 ms per frame (17-25 ms
         told 1 px), the views of a landmark being correlated. Not a default, for that and the MSCKF's
-        reasons.
+        reasons, and not with :meth:`with_online_calibration` (whose factors need white track noise).
         """
         return replace(
             self,
