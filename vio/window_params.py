@@ -181,12 +181,11 @@ class WindowParams:
         :data:`~viotb.vio.msckf_params.RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX`, as generalized least squares
         over each landmark's views: ``track_noise``); the Huber and outlier thresholds stay in sigmas. For
         the KLT front end on rendered recordings with the right calibration. Measured (README "Consistency
-        per scenario", 20 s KLT renders at 320x240, seeds 0-2): more accurate on 13 of 15 runs (``figure8``
-        ATE 1.44 / 1.32 / 2.25 -> 0.72 / 0.69 / 1.49 cm) and overconfident (position NEES 1.4-93, against
-        0.07-8.9 told 1 px), most where the rotation is fast. ``aggressive``'s part is the IMU's scale and
-        misalignment, which the window does not estimate: recorded without them, its NEES is 3.2 (ATE
-        0.47 cm); ``head-fast-turns`` stays at 91 without them. Slower: p99 33-42 ms per frame (17-25 ms
-        told 1 px), the views of a landmark being correlated. Not a default, for that and the MSCKF's
+        per scenario", 20 s KLT renders at 320x240, seeds 0-2): more accurate on 12 of 15 runs (``figure8``
+        ATE 1.44 / 1.32 / 2.25 -> 0.72 / 0.69 / 1.49 cm) and overconfident (position NEES 1.4-60, against
+        0.07-8.9 told 1 px). ``aggressive``'s part is the IMU's scale and misalignment, which the window
+        does not estimate: recorded without them, its NEES is 3.2 (ATE 0.47 cm). Slower: p99 33-43 ms per
+        frame (17-26 ms told 1 px), the views of a landmark being correlated. Not a default, for that and the MSCKF's
         reasons, and not with :meth:`with_online_calibration` (whose factors need white track noise).
         """
         return replace(

@@ -120,9 +120,9 @@ WINDOW_RENDER_NOISE_NIS_PER_DOF = 1.6
 :meth:`viotb.vio.window_params.WindowParams.with_render_klt_noise` (0.035 px white and the track walk).
 Measured on 20 s recordings at 320x240, seed 0, as the monitor's windowed mean over 30 updates (run mean in
 brackets): hover 1.26 (1.14), ``figure8`` 1.96 (1.54), ``circle`` 1.58 (1.33); 1.6 keeps those under the
-1.25 factor of the time-sync test. Fast rotation exceeds it: ``head-fast-turns`` 3.62 (2.87) and
+1.25 factor of the time-sync test. Fast rotation exceeds it: ``head-fast-turns`` 3.60 (2.77) and
 ``aggressive`` 113 (22.6, median 1.84), where the window with this model is overconfident (position NEES
-93 and 60), so the monitor raises the time-sync condition there, and the attribution is wrong.
+11 and 60), so the monitor raises the time-sync condition there, and the attribution is wrong.
 """
 
 
