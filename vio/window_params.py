@@ -185,8 +185,9 @@ class WindowParams:
         ATE 1.44 / 1.32 / 2.25 -> 0.72 / 0.69 / 1.49 cm) and overconfident (position NEES 1.4-60, against
         0.07-8.9 told 1 px). ``aggressive``'s part is the IMU's scale and misalignment, which the window
         does not estimate: recorded without them, its NEES is 3.2 (ATE 0.47 cm). Slower: p99 33-43 ms per
-        frame (17-26 ms told 1 px), the views of a landmark being correlated. Not a default, for that and the MSCKF's
-        reasons, and not with :meth:`with_online_calibration` (whose factors need white track noise).
+        frame (17-26 ms told 1 px), the views of a landmark being correlated. Not a default, for that and
+        the MSCKF's reasons, and not with :meth:`with_online_calibration` (whose factors need white track
+        noise).
         """
         return replace(
             self,
