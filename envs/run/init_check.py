@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from viotb.envs.run.replay import imu_end_for_frame
 from viotb.envs.scenarios.streams import Stream, StreamConfig, synthesize_stream
 from viotb.vio.lie import quat_wxyz_to_rotmat
 from viotb.vio.msckf import MsckfEstimator, MsckfParams
@@ -95,7 +96,8 @@ def check_initialization(stream: Stream, estimator: str = "msckf", max_delay_s: 
         t_frame = frame.t_s + off
         if t_frame - t_first > max_delay_s:
             break
-        while i < len(imu) and imu.t_s[i] <= t_frame:
+        end = imu_end_for_frame(imu.t_s, i, t_frame)
+        while i < end:
             est.feed_imu(imu.sample(i))
             i += 1
         est.feed_camera(frame)

@@ -42,6 +42,24 @@ class MonitoredRun:
     monitor_ms: float = 0.0
 
 
+def imu_end_for_frame(imu_t_s: np.ndarray, i: int, t_frame_imu_s: float) -> int:
+    """End (exclusive) of the IMU samples to feed, from index ``i``, before a frame at ``t_frame_imu_s``.
+
+    Through the first sample at or past the frame's time (IMU clock), so the estimator interpolates the
+    readings at the frame instead of holding the last one over the rest of the interval (see
+    :func:`replay`); a frame past the last sample gets every sample, one before the first gets none.
+
+    Args:
+        imu_t_s: IMU sample times (s), shape (N,), increasing.
+        i: First sample not fed yet.
+        t_frame_imu_s: The frame's time on the IMU clock (s).
+    """
+    j = int(np.searchsorted(imu_t_s, t_frame_imu_s, side="left"))  # the first sample at or past the frame
+    if j == 0 and (len(imu_t_s) == 0 or imu_t_s[0] > t_frame_imu_s):
+        return i
+    return max(i, min(j + 1, len(imu_t_s)))
+
+
 def replay(
     estimator: Estimator,
     imu: ImuSeries,
@@ -83,11 +101,11 @@ def replay(
     out = MonitoredRun([], np.zeros(0), [], [], monitor)
     times: list[float] = []
     i = 0 if imu_start_s is None else int(np.searchsorted(imu.t_s, imu_start_s))
-    n = len(imu)
     total = float(n_frames) if n_frames is not None else float("nan")
     for k, frame in enumerate(frames):
         t_imu = float(frame.t_s) + time_offset_s
-        while i < n and (imu.t_s[i] <= t_imu or (i > 0 and imu.t_s[i - 1] < t_imu)):
+        end = imu_end_for_frame(imu.t_s, i, t_imu)
+        while i < end:
             s = imu.sample(i)
             estimator.feed_imu(s)
             if monitor is not None:

@@ -14,6 +14,7 @@ from collections.abc import Iterator
 import numpy as np
 from viotb.envs.data.eval_frames import camera_frame, usable_frames
 from viotb.envs.data.eval_options import EvalOptions
+from viotb.envs.run.replay import imu_end_for_frame
 from viotb.vio.frontend import Tracks
 from viotb.vio.types import CameraFrame
 
@@ -79,7 +80,7 @@ class BackendReplay:
         return self._first, self._stop
 
     def frames(self) -> Iterator[CameraFrame]:
-        """Each frame, after the IMU samples up to it are fed (from one second before the first frame).
+        """Each frame, after the IMU samples through it are fed (from one second before the first frame).
 
         Interleaved as :func:`viotb.envs.run.replay.replay` does; the caller feeds (and times) the frame.
         """
@@ -90,7 +91,8 @@ class BackendReplay:
         i = int(np.searchsorted(imu.t_s, float(ds.cam_t_s[first]) + off - 1.0)) if stop > first else 0
         for frame in self._frames:
             t_imu = frame.t_s + off
-            while i < len(imu) and imu.t_s[i] <= t_imu:
+            end = imu_end_for_frame(imu.t_s, i, t_imu)
+            while i < end:
                 est.feed_imu(imu.sample(i))
                 i += 1
             yield frame
