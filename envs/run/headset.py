@@ -322,7 +322,10 @@ def run_headset(
         for k in range(n_imu):
             t_k = float(t_imu[k])
             new_frame = False
-            while f < len(kept) and schedule.t_exposure_imu_s[kept[f]] + cam.latency_s < t_k:
+            sample = imu.sample(k)  # first: a frame waits for the IMU to pass it (replay.imu_end_for_frame)
+            est.feed_imu(sample)
+            monitor.observe_imu(sample)
+            while f < len(kept) and schedule.t_exposure_imu_s[kept[f]] + cam.latency_s <= t_k:
                 frame = make_frame(int(kept[f]))
                 if opts.estimator == "ground-truth":
                     s = trajectory.sample(float(schedule.t_exposure_imu_s[kept[f]]))
@@ -351,9 +354,6 @@ def run_headset(
                 new_frame = True
                 if progress is not None:
                     progress(f, len(kept))
-            sample = imu.sample(k)
-            est.feed_imu(sample)
-            monitor.observe_imu(sample)
             if est.health().diverged:
                 failure = f"estimator diverged: {est.health().reason}"
                 break
