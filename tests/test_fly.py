@@ -131,6 +131,18 @@ def test_dark_room_flight_without_recovery_is_stopped_by_the_health_monitor():
     assert metrics["seconds"] < 16.0 and not metrics["crashed"]
 
 
+def _without_and_with_calibration(scenario: str, estimator: str) -> tuple[dict, dict]:
+    """The metrics of one 20 s simulated-feature flight (seed 0), without and with online calibration."""
+    bad, _ = fly(scenario, estimator, seconds=20.0, seed=0, frontend="sim")
+    good, _ = fly(scenario, estimator, seconds=20.0, seed=0, frontend="sim", online_calibration=True)
+    return bad, good
+
+
+def _names(metrics: dict) -> list[str]:
+    """The names of the conditions a flight raised, in order."""
+    return [c["name"] for c in metrics["conditions"]]
+
+
 def test_time_offset_in_flight_is_fixed_and_named_by_online_calibration():
     """``fly-fail-time-offset`` (10 ms the estimator is not told), simulated features, 20 s.
 
@@ -138,13 +150,10 @@ def test_time_offset_in_flight_is_fixed_and_named_by_online_calibration():
     ``--calibrate`` 1.35 cm and ``time_offset_miscalibrated`` at 3.85 s. The nominal ``fly-figure8`` raises
     nothing, with or without calibration (1.8 / 1.9 cm).
     """
-    bad, _ = fly("fly-fail-time-offset", "msckf", seconds=20.0, seed=0, frontend="sim")
-    good, _ = fly(
-        "fly-fail-time-offset", "msckf", seconds=20.0, seed=0, frontend="sim", online_calibration=True
-    )
+    bad, good = _without_and_with_calibration("fly-fail-time-offset", "msckf")
     assert good["hover_rms_m"] < 0.25 * bad["hover_rms_m"], (bad["hover_rms_m"], good["hover_rms_m"])
-    assert [c["name"] for c in bad["conditions"]] == ["time_sync_or_extrinsic_suspected"], bad["conditions"]
-    assert [c["name"] for c in good["conditions"]] == ["time_offset_miscalibrated"], good["conditions"]
+    assert _names(bad) == ["time_sync_or_extrinsic_suspected"], bad["conditions"]
+    assert _names(good) == ["time_offset_miscalibrated"], good["conditions"]
 
 
 def test_window_in_flight_calibrates_a_wrong_extrinsic_and_names_it():
@@ -155,13 +164,10 @@ def test_window_in_flight_calibrates_a_wrong_extrinsic_and_names_it():
     cm, ``time_offset_miscalibrated`` at 3.3 s (+11.8 +- 2.3 ms found of the 10 ms); nominal ``fly-figure8``
     1.72 / 2.08 cm, nothing raised either way.
     """
-    bad, _ = fly("fly-fail-extrinsic", "window", seconds=20.0, seed=0, frontend="sim")
-    good, _ = fly(
-        "fly-fail-extrinsic", "window", seconds=20.0, seed=0, frontend="sim", online_calibration=True
-    )
+    bad, good = _without_and_with_calibration("fly-fail-extrinsic", "window")
     assert good["hover_rms_m"] < 0.5 * bad["hover_rms_m"], (bad["hover_rms_m"], good["hover_rms_m"])
-    assert [c["name"] for c in bad["conditions"]] == ["time_sync_or_extrinsic_suspected"], bad["conditions"]
-    assert [c["name"] for c in good["conditions"]] == ["extrinsic_miscalibrated"], good["conditions"]
+    assert _names(bad) == ["time_sync_or_extrinsic_suspected"], bad["conditions"]
+    assert _names(good) == ["extrinsic_miscalibrated"], good["conditions"]
 
 
 def test_nominal_figure8_in_flight_raises_nothing_with_calibration_on():
