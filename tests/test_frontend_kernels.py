@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import cv2
 import numpy as np
@@ -119,18 +120,33 @@ def test_klt_tracker_with_compiled_anchoring_keeps_the_numpy_tracks_on_euroc():
 
 
 @pytest.mark.skipif(not (EUROC_MICRO / "mav0").is_dir(), reason="EuRoC micro set not found")
-def test_parallel_anchoring_gives_the_sequential_tracks_bit_for_bit():
-    """Anchoring in a second thread during the backward pass (``KltParams.parallel_anchoring``)."""
+@pytest.mark.parametrize("overlap", ["parallel_anchoring", "parallel_detection", "deferred_templates", "all"])
+def test_work_in_the_worker_thread_gives_the_sequential_tracks_bit_for_bit(overlap):
+    """The tracker's work in its second thread, each option alone and all three, against none of them.
+
+    ``parallel_anchoring`` (the anchoring beside the backward pass), ``parallel_detection`` (FAST beside
+    the forward pass) and ``deferred_templates`` (the template taking after the frame returns). A blank
+    frame in the middle ends every track (``reset`` waits for the templates still being taken).
+    """
     bench = load_repo_script("benchmarks/frontend_cost.py")
     ds, frames = bench.load_frames(EUROC_MICRO, cameras=1, max_frames=12)
+    frames[6] = dataclasses.replace(frames[6], image=None)
+    names = ("parallel_anchoring", "parallel_detection", "deferred_templates")
+    serial = KltParams(**dict.fromkeys(names, False))
+    params = {
+        "serial": serial,
+        "overlap": dataclasses.replace(serial, **{n: n == overlap or overlap == "all" for n in names}),
+    }
     tracks = {}
-    for parallel in (False, True):
-        tracker = KltTracker(ds.calib.camera, KltParams(parallel_anchoring=parallel))
-        tracks[parallel] = [tracker.process(f, f.t_s) for f in frames]
-    for seq, par in zip(tracks[False], tracks[True], strict=True):
+    for key, kp in params.items():
+        tracker = KltTracker(ds.calib.camera, kp)
+        tracks[key] = [tracker.process(f, f.t_s) for f in frames]
+    for seq, par in zip(tracks["serial"], tracks["overlap"], strict=True):
         np.testing.assert_array_equal(par.ids, seq.ids)
         np.testing.assert_array_equal(par.uv_px, seq.uv_px)
-    assert len(tracks[True][-1]) > 50
+    assert (
+        len(tracks["overlap"][6]) == 0 and len(tracks["overlap"][5]) > 50 and len(tracks["overlap"][-1]) > 50
+    )
 
 
 @pytest.mark.parametrize("projective", [False, True])

@@ -13,7 +13,7 @@ per clone time and camera in fixed arrays and answers time-based queries (:mod:`
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -182,6 +182,11 @@ class KltParams:
             (:data:`viotb.vio.klt_flow.LK_NO_ERROR_PASS`; the tracker never reads the error). The same
             tracks bit for bit: the pass only changes the status of points that ended beyond the image's
             window padding, which the border and forward-backward tests refuse anyway. ~5 % of the KLT.
+        parallel_detection: Run the FAST detection of the new image in the worker thread during the forward
+            pass (it needs only the image; the tracked points filter its corners afterwards).
+        deferred_templates: Take the new tracks' templates in the worker thread after the frame is returned
+            (they are first read by the next frame's anchoring, which waits for them), so the taking runs
+            beside the estimator's update. Both give the same tracks bit for bit (README "MSCKF per frame").
     """
 
     max_features: int = 180
@@ -212,6 +217,8 @@ class KltParams:
     anchor_compiled: bool = True
     parallel_anchoring: bool = True
     lk_skip_error_pass: bool = True
+    parallel_detection: bool = True
+    deferred_templates: bool = True
 
 
 class KltTracker:
@@ -239,6 +246,8 @@ class KltTracker:
         self._undistort_criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
         self._anchors = self._new_anchors()
         self._executor: ThreadPoolExecutor | None = None
+        self._templates: Future | None = None  # the deferred template taking of the previous frame
+        self._corners: Future | None = None  # the FAST corners of the frame being tracked
 
     def _new_anchors(self) -> TemplateAnchors | None:
         p = self.params
@@ -291,6 +300,7 @@ class KltTracker:
 
     def reset(self) -> None:
         """Forget the previous frame (all tracks end)."""
+        self._join_templates()
         self._prev_img = None
         self._prev_pts = np.zeros((0, 2), dtype=np.float32)
         self._prev_ids = np.zeros(0, dtype=np.int64)
@@ -382,9 +392,22 @@ class KltTracker:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="klt-anchor")
         return self._executor
 
+    def _join_templates(self) -> None:
+        """Wait for the previous frame's template taking (``deferred_templates``; re-raises its error)."""
+        if self._templates is not None:
+            job, self._templates = self._templates, None
+            job.result()
+
+    def _update_templates(self, img_f32: np.ndarray, ids: np.ndarray, pts: np.ndarray, fresh) -> None:
+        """Drop the ended tracks' templates; take the new tracks' and failed anchorings' (one batch)."""
+        self._anchors.keep_only(ids)
+        self._anchors.take(img_f32, ids[fresh], pts[fresh])
+
     def _detect(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """New FAST corners, bucketed on a grid and away from tracked points, shape (N, 2) float32."""
-        return detect_corners(self._fast, self.camera, self.params, img, pts)
+        job, self._corners = self._corners, None
+        kps = None if job is None else job.result()
+        return detect_corners(self._fast, self.camera, self.params, img, pts, kps)
 
     def process(self, frame: CameraFrame, t_imu_s: float) -> Tracks:
         """Track into ``frame.image``; an absent/empty or featureless image yields zero tracks.
@@ -400,6 +423,11 @@ class KltTracker:
             self.reset()
             return Tracks.empty(frame.t_s, t_imu_s)
         img = self._check_image(frame.image)
+        self._join_templates()
+        p = self.params
+        self._corners = None
+        if p.parallel_detection and self._prev_img is not None and len(self._prev_pts):
+            self._corners = self._pool().submit(self._fast.detect, img, None)  # beside the forward pass
         img_f32 = img.astype(np.float32) if self._anchors is not None else None
         pts, ids, xy, fresh = self._track(img, img_f32)
         if self.params.anchor_fail_ends_track and np.any(fresh):
@@ -417,11 +445,10 @@ class KltTracker:
             ids = np.concatenate([ids, new_ids])
             xy = np.vstack([xy, self.undistort(new)])
             fresh = np.concatenate([fresh, np.ones(len(new), dtype=bool)])
-        if self._anchors is not None:
-            # The templates of the ended tracks go; those of the new tracks and the failed anchorings are
-            # taken (one batch per frame).
-            self._anchors.keep_only(ids)
-            self._anchors.take(img_f32, ids[fresh], pts[fresh])
+        if self._anchors is not None and p.deferred_templates:
+            self._templates = self._pool().submit(self._update_templates, img_f32, ids.copy(), pts, fresh)
+        elif self._anchors is not None:
+            self._update_templates(img_f32, ids, pts, fresh)
         self._prev_img, self._prev_pts, self._prev_ids = img, pts.astype(np.float32), ids
         self._prev_xy = xy
         return Tracks(frame.t_s, t_imu_s, ids, xy, pts.astype(float))

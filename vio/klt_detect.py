@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import cv2
@@ -10,7 +11,12 @@ from viotb.vio.camera import PinholeCamera
 
 
 def detect_corners(
-    fast: cv2.FastFeatureDetector, camera: PinholeCamera, p: Any, img: np.ndarray, pts: np.ndarray
+    fast: cv2.FastFeatureDetector,
+    camera: PinholeCamera,
+    p: Any,
+    img: np.ndarray,
+    pts: np.ndarray,
+    kps: Sequence[cv2.KeyPoint] | None = None,
 ) -> np.ndarray:
     """New FAST corners of ``KltTracker``, bucketed on a grid and away from the tracked points.
 
@@ -21,6 +27,7 @@ def detect_corners(
             ``border_px``; not imported here: :mod:`viotb.vio.frontend` imports this module).
         img: Grayscale uint8 image (H, W).
         pts: Tracked pixels, shape (M, 2).
+        kps: ``fast.detect(img)``'s corners when they were detected already (None: detect here).
 
     Returns:
         New corners (px), shape (N, 2) float32, strongest first, at most ``max_features - M``.
@@ -28,7 +35,8 @@ def detect_corners(
     need = p.max_features - len(pts)
     if need <= 0:
         return np.zeros((0, 2), dtype=np.float32)
-    kps = fast.detect(img, None)
+    if kps is None:
+        kps = fast.detect(img, None)
     if not kps:
         return np.zeros((0, 2), dtype=np.float32)
     cand = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
