@@ -314,7 +314,7 @@ class MsckfEstimator:
             conditions.append("zupt")
             self.zupt_count += 1
             stats = UpdateStats()
-        elif not self.keyframe_rule.is_keyframe(tracks):
+        elif not self.keyframe_rule.is_keyframe(tracks, *self._rotation_since_keyframe(st)):
             self.keyframe_rule.skip()
             stats = UpdateStats()
         else:
@@ -357,6 +357,18 @@ class MsckfEstimator:
         self._check_divergence(stats)
         self.last_stats = stats
         self._health = self._make_health(frame.t_s, tracks, stats, tuple(conditions))
+
+    def _rotation_since_keyframe(self, st: State) -> tuple[np.ndarray | None, float]:
+        """``(R_CrCn (3, 3), focal_px)`` for a rotation-compensated keyframe rule, else ``(None, focal_px)``.
+
+        ``R_CrCn`` is the camera's rotation since the newest clone (the rule's reference keyframe), from the
+        propagated attitude and the current extrinsic.
+        """
+        if not self.params.keyframing.rotation_compensated or not st.clones:
+            return None, self._focal_px
+        ref = st.clones[next(reversed(st.clones))]
+        R_BrBn = ref.R_WB.T @ st.imu.R_WB
+        return st.R_BC.T @ R_BrBn @ st.R_BC, self._focal_px
 
     def _slam_step(self, st: State, t_s: float, lm_obs, new, n_lost: int) -> SlamStats:
         """Update the SLAM landmarks at the newest clone, then initialize the new ones (open_vins order)."""

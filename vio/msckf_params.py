@@ -52,6 +52,10 @@ class MsckfParams:
             asks for excitation (:meth:`MsckfEstimator.wants_excitation`).
         keyframing: Which frames become clones (and update); the front end still tracks every frame
             (:mod:`viotb.vio.keyframing`; at least every 6th frame, or 3 px of parallax).
+            ``rotation_compensated=True`` measures the parallax with the rotation since the newest clone
+            removed (from the propagated attitude); off by default: on 40 s KLT recordings it halves the
+            mono ``head-look-around`` drift but costs ``hover`` and ``head-fast-turns`` a third more ATE
+            (README "Consistency per scenario", session 15).
         max_features_per_update: Most features used in one update (longest tracks first).
         min_track_length: Fewest observations (views of every camera, on a stereo rig) for a feature to be
             used.
