@@ -393,15 +393,10 @@ class KltTracker:
         return self._executor
 
     def _join_templates(self) -> None:
-        """Wait for the previous frame's template taking (``deferred_templates``; re-raises its error)."""
+        """Store the previous frame's templates once taken (``deferred_templates``; re-raises its error)."""
         if self._templates is not None:
-            job, self._templates = self._templates, None
-            job.result()
-
-    def _update_templates(self, img_f32: np.ndarray, ids: np.ndarray, pts: np.ndarray, fresh) -> None:
-        """Drop the ended tracks' templates; take the new tracks' and failed anchorings' (one batch)."""
-        self._anchors.keep_only(ids)
-        self._anchors.take(img_f32, ids[fresh], pts[fresh])
+            (job, computing), self._templates = self._templates, None
+            self._anchors.end_take(job, computing.result())
 
     def _detect(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """New FAST corners, bucketed on a grid and away from tracked points, shape (N, 2) float32."""
@@ -445,10 +440,16 @@ class KltTracker:
             ids = np.concatenate([ids, new_ids])
             xy = np.vstack([xy, self.undistort(new)])
             fresh = np.concatenate([fresh, np.ones(len(new), dtype=bool)])
-        if self._anchors is not None and p.deferred_templates:
-            self._templates = self._pool().submit(self._update_templates, img_f32, ids.copy(), pts, fresh)
-        elif self._anchors is not None:
-            self._update_templates(img_f32, ids, pts, fresh)
+        if self._anchors is not None:
+            # The ended tracks' templates go; the new tracks' and failed anchorings' are taken in one batch,
+            # with ``deferred_templates`` by the worker (only the kernel, which releases the GIL: Python
+            # there would hold up the estimator's update in this thread by the switch interval).
+            self._anchors.keep_only(ids)
+            job = self._anchors.begin_take(img_f32, ids[fresh], pts[fresh])
+            if job is not None and p.deferred_templates and p.anchor_compiled:
+                self._templates = (job, self._pool().submit(job[2]))
+            elif job is not None:
+                self._anchors.end_take(job, job[2]())
         self._prev_img, self._prev_pts, self._prev_ids = img, pts.astype(np.float32), ids
         self._prev_xy = xy
         return Tracks(frame.t_s, t_imu_s, ids, xy, pts.astype(float))

@@ -29,6 +29,8 @@ foreshortened plane drifts one way as the view changes (README "KLT track bias o
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 from viotb.vio.klt_math import (
@@ -224,20 +226,37 @@ class TemplateAnchors:
 
         Tracks too close to the border or on flat texture get no template (they stay frame-to-frame).
         """
+        job = self.begin_take(image, ids, uv_px)
+        if job is not None:
+            self.end_take(job, job[2]())
+
+    def begin_take(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray):
+        """:meth:`take` in two parts: drop the old templates, and the computation to run (None: nothing).
+
+        Returns:
+            ``(ids, uv, compute)`` or None: ``compute()`` is the template kernel alone (the compiled one
+            releases the GIL, so another thread can run it), and :meth:`end_take` stores its result. No
+            other call may change the templates in between.
+        """
         ids = np.asarray(ids, dtype=np.int64)
         uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
         image = np.asarray(image, dtype=np.float32)
         self.drop(ids)
         ok = self._inside(image, uv, 2.0)
-        ids, uv = ids[ok], uv[ok]
+        ids, uv = ids[ok], np.ascontiguousarray(uv[ok])
         if len(ids) == 0:
-            return
+            return None
         if self.compiled:
             from viotb.vio.frontend_take_kernel import take_templates  # numba: not on the CLI's import path
         else:
             take_templates = take_templates_numpy
-        args = (self.damping, self.projective_damping, self._projective, self.min_texture)
-        keep, tmpl, J, J_tmpl = take_templates(image, np.ascontiguousarray(uv), self._r, *args)
+        args = (self._r, self.damping, self.projective_damping, self._projective, self.min_texture)
+        return ids, uv, functools.partial(take_templates, image, uv, *args)
+
+    def end_take(self, job, result) -> None:
+        """Store what :meth:`begin_take`'s ``compute()`` returned (the templates that were kept)."""
+        ids, uv, _ = job
+        keep, tmpl, J, J_tmpl = result
         if np.any(keep):
             self._store(ids[keep], uv[keep], tmpl[keep], J[keep], J_tmpl[keep])
 
