@@ -184,9 +184,10 @@ class KltParams:
             window padding, which the border and forward-backward tests refuse anyway. ~5 % of the KLT.
         parallel_detection: Run the FAST detection of the new image in the worker thread during the forward
             pass (it needs only the image; the tracked points filter its corners afterwards).
-        deferred_templates: Take the new tracks' templates in the worker thread after the frame is returned
-            (they are first read by the next frame's anchoring, which waits for them), so the taking runs
-            beside the estimator's update. Both give the same tracks bit for bit (README "MSCKF per frame").
+        deferred_templates: With ``anchor_compiled``: run the new tracks' template kernel in the worker
+            thread after the frame is returned (the next frame's anchoring, which first reads them, stores
+            them), so it runs beside the estimator's update. Both give the same tracks bit for bit (README
+            "MSCKF per frame").
     """
 
     max_features: int = 180
