@@ -421,9 +421,8 @@ class KltTracker:
         img = self._check_image(frame.image)
         self._join_templates()
         p = self.params
-        self._corners = None
-        if p.parallel_detection and self._prev_img is not None and len(self._prev_pts):
-            self._corners = self._pool().submit(self._fast.detect, img, None)  # beside the forward pass
+        # FAST beside the forward pass (it needs only the image; ``_detect`` filters its corners).
+        self._corners = self._pool().submit(self._fast.detect, img, None) if p.parallel_detection else None
         img_f32 = img.astype(np.float32) if self._anchors is not None else None
         pts, ids, xy, fresh = self._track(img, img_f32)
         if self.params.anchor_fail_ends_track and np.any(fresh):
@@ -448,9 +447,9 @@ class KltTracker:
             self._anchors.keep_only(ids)
             job = self._anchors.begin_take(img_f32, ids[fresh], pts[fresh])
             if job is not None and p.deferred_templates and p.anchor_compiled:
-                self._templates = (job, self._pool().submit(job[2]))
+                self._templates = (job, self._pool().submit(job.compute))
             elif job is not None:
-                self._anchors.end_take(job, job[2]())
+                self._anchors.end_take(job, job.compute())
         self._prev_img, self._prev_pts, self._prev_ids = img, pts.astype(np.float32), ids
         self._prev_xy = xy
         return Tracks(frame.t_s, t_imu_s, ids, xy, pts.astype(float))

@@ -30,6 +30,8 @@ foreshortened plane drifts one way as the view changes (README "KLT track bias o
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -42,6 +44,14 @@ from viotb.vio.klt_math import (
 )
 
 __all__ = ["TemplateAnchors", "sample_bilinear", "singular_values_2x2"]
+
+
+class PendingTake(NamedTuple):
+    """Templates being taken (:meth:`TemplateAnchors.begin_take`): tracks, pixels (N, 2), the kernel call."""
+
+    ids: np.ndarray
+    uv: np.ndarray
+    compute: Callable[[], tuple]
 
 
 class TemplateAnchors:
@@ -228,13 +238,13 @@ class TemplateAnchors:
         """
         job = self.begin_take(image, ids, uv_px)
         if job is not None:
-            self.end_take(job, job[2]())
+            self.end_take(job, job.compute())
 
-    def begin_take(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray):
+    def begin_take(self, image: np.ndarray, ids: np.ndarray, uv_px: np.ndarray) -> PendingTake | None:
         """:meth:`take` in two parts: drop the old templates, and the computation to run (None: nothing).
 
         Returns:
-            ``(ids, uv, compute)`` or None: ``compute()`` is the template kernel alone (the compiled one
+            The pending take, or None: its ``compute()`` is the template kernel alone (the compiled one
             releases the GIL, so another thread can run it), and :meth:`end_take` stores its result. No
             other call may change the templates in between.
         """
@@ -251,14 +261,13 @@ class TemplateAnchors:
         else:
             take_templates = take_templates_numpy
         args = (self._r, self.damping, self.projective_damping, self._projective, self.min_texture)
-        return ids, uv, functools.partial(take_templates, image, uv, *args)
+        return PendingTake(ids, uv, functools.partial(take_templates, image, uv, *args))
 
-    def end_take(self, job, result) -> None:
+    def end_take(self, job: PendingTake, result: tuple) -> None:
         """Store what :meth:`begin_take`'s ``compute()`` returned (the templates that were kept)."""
-        ids, uv, _ = job
         keep, tmpl, J, J_tmpl = result
         if np.any(keep):
-            self._store(ids[keep], uv[keep], tmpl[keep], J[keep], J_tmpl[keep])
+            self._store(job.ids[keep], job.uv[keep], tmpl[keep], J[keep], J_tmpl[keep])
 
     def _store(
         self, ids: np.ndarray, uv: np.ndarray, tmpl: np.ndarray, J: np.ndarray, J_tmpl: np.ndarray
