@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -43,6 +44,9 @@ def _result(tmp_path: Path, *extra: str) -> dict:
         (("--klt-noise", "render", "--frontend", "sim"), "a model of the klt front end"),
         (("--klt-noise", "render", "--estimator", "window", "--calibrate"), "needs white track noise"),
         (("--imu-intrinsics", "accel"), "unknown IMU intrinsics choice 'accel'"),
+        (("--sensor-model", "render", "--estimator", "window"), "needs --estimator msckf and --frontend klt"),
+        (("--sensor-model", "render", "--frontend", "sim"), "needs --estimator msckf and --frontend klt"),
+        (("--sensor-model", "render", "--imu-intrinsics", "gyro"), "sets the KLT noise and the IMU"),
     ],
 )
 def test_bad_combinations_are_refused_with_the_flag_named(tmp_path: Path, extra: tuple, message: str) -> None:
@@ -58,6 +62,7 @@ def test_real_euroc_with_gyro_intrinsics_and_render_noise_reports_its_settings(t
         "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
         "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
         "imu_intrinsics": "gyro",
+        "rotation_compensated_keyframes": False,
     }
     assert out["estimated_frames"] > 0
     default = MsckfParams()
@@ -65,7 +70,26 @@ def test_real_euroc_with_gyro_intrinsics_and_render_noise_reports_its_settings(t
         "pixel_sigma_px": default.pixel_sigma_px,
         "track_random_walk_px2_per_px": default.klt.track_random_walk_px2_per_px,
         "imu_intrinsics": "none",
+        "rotation_compensated_keyframes": False,
     }
+
+
+def test_sensor_model_render_sets_the_measured_noise_the_imu_intrinsics_and_the_clone_spacing(
+    tmp_path: Path,
+) -> None:
+    """``--sensor-model render`` = ``MsckfParams().with_render_sensor_model()``, named in the JSON."""
+    out = _result(tmp_path, "--sensor-model", "render")
+    assert out["msckf_settings"] == {
+        "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
+        "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
+        "imu_intrinsics": "gyro+accel",
+        "rotation_compensated_keyframes": True,
+    }
+    assert out["estimated_frames"] > 0
+    p = MsckfParams().with_render_sensor_model()
+    assert replace(p, imu_intrinsics="none", keyframing=MsckfParams().keyframing) == (
+        MsckfParams().with_render_klt_noise()
+    )
 
 
 def test_the_window_takes_the_render_noise_model_and_the_result_names_it(tmp_path: Path) -> None:

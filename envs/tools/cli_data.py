@@ -151,6 +151,16 @@ def eval_(
         "project's renders, MsckfParams / WindowParams.with_render_klt_noise; msckf or window, for "
         "recordings with the right calibration).",
     ),
+    sensor_model: str = choice_option(
+        "default",
+        "--sensor-model",
+        "MSCKF sensor model",
+        ("default", "render"),
+        "The MSCKF's model of its sensors: default (1 px, the IMU as its file says: any camera) or render "
+        "(measured on this project's renders: the KLT render noise, the IMU's scale/misalignment estimated "
+        "online, rotation-compensated clones; MsckfParams.with_render_sensor_model; recordings with the "
+        "right calibration).",
+    ),
     monitor: bool = typer.Option(True, "--monitor/--no-monitor", help="Run the health monitor (default on)."),
     write_report: bool = typer.Option(
         True, "--report/--no-report", help="Write PNGs and report.json into --out."
@@ -189,7 +199,15 @@ def eval_(
             "--klt-noise render with --estimator window cannot --calibrate: the window's online calibration "
             "needs white track noise (WindowParams.track_noise=False)"
         )
+    if sensor_model != "default" and (estimator != "msckf" or frontend != "klt"):
+        fail(f"--sensor-model {sensor_model} needs --estimator msckf and --frontend klt")
+    if sensor_model != "default" and (imu_intrinsics != "none" or klt_noise != "default"):
+        fail(f"--sensor-model {sensor_model} sets the KLT noise and the IMU intrinsics itself")
     msckf = window = None
+    if sensor_model == "render":
+        from viotb.vio.msckf_params import MsckfParams
+
+        msckf = MsckfParams().with_render_sensor_model()
     if estimator == "msckf" and (imu_intrinsics != "none" or klt_noise != "default"):
         from dataclasses import replace
 
