@@ -10,6 +10,8 @@ ATE. Models:
 - ``msckf-render``: the KLT noise measured on the renders (:meth:`MsckfParams.with_render_klt_noise`).
 - ``msckf-render-gyro``, ``msckf-render-gyro+accel``: and the IMU's scale/misalignment matrices estimated
   online (:attr:`MsckfParams.imu_intrinsics`), i.e. ``viotb eval --klt-noise render --imu-intrinsics ...``.
+- ``msckf-sensor-render``: :meth:`MsckfParams.with_render_sensor_model` (``viotb eval --sensor-model
+  render``): the above with both matrices and rotation-compensated clones.
 - ``window-render``: :meth:`WindowParams.with_render_klt_noise`.
 
 Usage::
@@ -42,6 +44,7 @@ MODELS = (
     "msckf-render",
     "msckf-render-gyro",
     "msckf-render-gyro+accel",
+    "msckf-sensor-render",
     "window",
     "window-render",
 )
@@ -55,6 +58,8 @@ def options(model: str) -> EvalOptions:
         window = WindowParams().with_render_klt_noise() if model == "window-render" else None
         return EvalOptions("window", "klt", window=window)
     msckf = MsckfParams()
+    if model == "msckf-sensor-render":
+        return EvalOptions("msckf", "klt", msckf=msckf.with_render_sensor_model())
     if "render" in model:
         msckf = msckf.with_render_klt_noise()
     if "gyro" in model:
@@ -90,7 +95,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--recordings", type=Path, required=True, help="folder of SCENARIO-SEED recordings")
     ap.add_argument("--scenarios", default=",".join(SCENARIOS))
-    ap.add_argument("--models", default="msckf,msckf-render-gyro+accel")
+    ap.add_argument("--models", default="msckf,msckf-sensor-render")
     ap.add_argument("--seeds", default="0-4", help="e.g. 0-4 or 0,3")
     ap.add_argument("--seconds", type=float, default=40.0)
     args = ap.parse_args()

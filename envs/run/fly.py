@@ -37,6 +37,7 @@ from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.imu_prediction import prefetch_covariances
 from viotb.vio.lie import rotz, yaw_from_rotmat
+from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.recovery import RecoveringEstimator
 from viotb.vio.types import StateEstimate
 
@@ -72,6 +73,7 @@ def fly(
     edit_rig: Callable[[RigConfig], RigConfig] | None = None,
     loop_closure: bool | LoopOptions | None = None,
     recovery: bool = True,
+    sensor_model: str = "default",
 ) -> tuple[dict, FlightLog]:
     """Fly a closed-loop scenario.
 
@@ -95,6 +97,8 @@ def fly(
             (``FlyScenario.loop_closure``). With the ``sim`` front end the camera is rendered for the closer.
         recovery: Coast through a loss of tracking and re-initialize in the air (``RigConfig.recovery``)
             instead of stopping the flight on divergence; ``edit_rig`` may still turn it off.
+        sensor_model: The MSCKF's sensor model (:meth:`~viotb.vio.msckf_params.MsckfParams.with_sensor_model`;
+            ``"render"``: the one measured on these renders; ``msckf`` on ``klt`` only).
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -113,6 +117,12 @@ def fly(
     rig = replace(sc.rig, estimator=estimator, frontend=frontend, recovery=bool(recovery))
     if online_calibration is not None:
         rig = replace(rig, online_calibration=bool(online_calibration))
+    if sensor_model != "default":
+        if estimator != "msckf" or frontend != "klt":
+            raise ValueError(
+                f"sensor model {sensor_model!r} needs the msckf on klt, got {estimator} on {frontend}"
+            )
+        rig = replace(rig, msckf=(rig.msckf or MsckfParams()).with_sensor_model(sensor_model))
     if edit_rig is not None:
         rig = edit_rig(rig)
     if loop_closure is None:

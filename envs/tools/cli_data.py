@@ -111,6 +111,10 @@ def record(
     emit(result, as_json, f"recorded {scenario} -> {out}")
 
 
+SENSOR_MODEL_CHOICES = ("default", "render")
+"""``--sensor-model`` values: :data:`viotb.vio.msckf_params.SENSOR_MODELS` (its module loads the filter)."""
+
+
 def eval_(
     dataset: Path = typer.Argument(..., help="EuRoC-layout folder (containing mav0/, or mav0 itself)."),
     estimator: str = estimator_option(),
@@ -155,7 +159,7 @@ def eval_(
         "default",
         "--sensor-model",
         "MSCKF sensor model",
-        ("default", "render"),
+        SENSOR_MODEL_CHOICES,
         "The MSCKF's model of its sensors: default (1 px, the IMU as its file says: any camera) or render "
         "(measured on this project's renders: the KLT render noise, the IMU's scale/misalignment estimated "
         "online, rotation-compensated clones; MsckfParams.with_render_sensor_model; recordings with the "
@@ -204,10 +208,10 @@ def eval_(
     if sensor_model != "default" and (imu_intrinsics != "none" or klt_noise != "default"):
         fail(f"--sensor-model {sensor_model} sets the KLT noise and the IMU intrinsics itself")
     msckf = window = None
-    if sensor_model == "render":
+    if sensor_model != "default":
         from viotb.vio.msckf_params import MsckfParams
 
-        msckf = MsckfParams().with_render_sensor_model()
+        msckf = MsckfParams().with_sensor_model(sensor_model)
     if estimator == "msckf" and (imu_intrinsics != "none" or klt_noise != "default"):
         from dataclasses import replace
 

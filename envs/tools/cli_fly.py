@@ -8,6 +8,7 @@ import typer
 from viotb.envs.tools.cli_common import (
     check_out,
     check_seconds,
+    choice_option,
     emit,
     err_console,
     estimator_option,
@@ -19,6 +20,7 @@ from viotb.envs.tools.cli_common import (
     seed_option,
     write_json,
 )
+from viotb.envs.tools.cli_data import SENSOR_MODEL_CHOICES
 
 SECONDS_HELP = (
     "Flight duration (s), ground phase included. The mission starts about 10.5 s in (estimator "
@@ -45,6 +47,14 @@ def fly(
         help="Loop closure; the controller gets the corrected pose (default: the scenario's, off but for "
         "fly-lights-out; with --frontend sim the camera is rendered for it).",
     ),
+    sensor_model: str = choice_option(
+        "default",
+        "--sensor-model",
+        "MSCKF sensor model",
+        SENSOR_MODEL_CHOICES,
+        "The MSCKF's model of its sensors: default (1 px, the IMU as calibrated) or render (measured on "
+        "these renders: MsckfParams.with_render_sensor_model; msckf on klt).",
+    ),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),
     as_json: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
@@ -68,6 +78,7 @@ def fly(
                 online_calibration=calibrate or None,
                 severity=severity,
                 loop_closure=loop_closure,
+                sensor_model=sensor_model,
             )
     except ValueError as exc:
         fail(str(exc))
