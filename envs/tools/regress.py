@@ -5,7 +5,8 @@ no rendering) evaluated with the MSCKF and the simulated front end, plus one clo
 the simulated front end. ``full`` adds a fast circle, the 60 s long loop (simulated features), a moving start
 (``moving-start-sim``: the stream entered mid-motion, so the MSCKF must initialize dynamically; its
 ``init_time_s`` is guarded too), and the
-image path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``) and a 20
+image path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``; and with
+the sensor model measured on the renders, ``figure8-klt-render``, whose NEES guards its consistency) and a 20
 s closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``), and the circle with the sliding-window
 optimizer (``circle-sim-window``).
 
@@ -58,7 +59,7 @@ FULL_CASES = {
     "long-loop-sim": StreamConfig(motion="long-loop", seconds=60.0, landmark_count=600),
     "moving-start-sim": StreamConfig(motion="aggressive", seconds=12.0, landmark_count=600, start_at_s=4.0),
 }
-IMAGE_CASES = ("figure8-klt", "fly-hover-klt")
+IMAGE_CASES = ("figure8-klt", "figure8-klt-render", "fly-hover-klt")
 """Full-set cases on rendered images."""
 WINDOW_CASES = {"circle-sim-window": StreamConfig(motion="circle", seconds=10.0, landmark_count=600)}
 """Full-set cases run with the sliding-window optimizer instead of the MSCKF."""
@@ -125,11 +126,21 @@ def _stream_case(run: RunConfig, ref_ms: float) -> dict:
     return out
 
 
-def _recording_case(seed: int, ref_ms: float) -> dict:
-    """``figure8`` rendered for 12 s, replayed by the MSCKF with the KLT front end (mode ``record-eval``)."""
+def _recording_case(seed: int, ref_ms: float, params: MsckfParams | None = None) -> dict:
+    """``figure8`` rendered for 12 s, replayed by the MSCKF with the KLT front end (mode ``record-eval``).
+
+    ``params``: the MSCKF's settings (None: the defaults), as ``msckf.*`` overrides of the run.
+    """
+    overrides = _overrides(params, MsckfParams()) if params is not None else ()
     m = run_config(
         RunConfig(
-            scenario="figure8", mode="record-eval", estimator="msckf", frontend="klt", seconds=12.0, seed=seed
+            scenario="figure8",
+            mode="record-eval",
+            estimator="msckf",
+            frontend="klt",
+            seconds=12.0,
+            seed=seed,
+            params=overrides,
         )
     )
     nan = float("nan")
@@ -191,6 +202,7 @@ def run_suite(
         out["fly-hover-sim"] = _fly_case(seed, ref)
     if full and only is None:
         out["figure8-klt"] = _recording_case(seed, ref)
+        out["figure8-klt-render"] = _recording_case(seed, ref, MsckfParams().with_render_sensor_model())
         out["fly-hover-klt"] = _fly_case(seed, ref, frontend="klt", seconds=20.0)
         for name, cfg in WINDOW_CASES.items():
             out[name] = _stream_case(_stream_run(cfg, seed, (), estimator="window"), ref)
