@@ -279,6 +279,7 @@ def test_divergence_is_detected_and_reported():
             break
     h = est.health()
     assert h.diverged and "runaway innovation" in h.reason
+    assert "told 1 px" in h.reason and "time offset or extrinsic" in h.reason  # what to look at
     est.feed_camera(CameraFrame(t_s=10.0))  # keeps answering after divergence
     assert est.health().diverged
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from viotb.envs.data.diagnosis import MSCKF_RENDER_NOISE_NIS_PER_DOF, expected_nis_per_dof
 from viotb.envs.data.eval_options import EvalOptions
 from viotb.envs.data.evaluate import evaluate_dataset
 from viotb.envs.data.record import record_scenario
@@ -32,8 +33,8 @@ RENDER_MODEL = MsckfParams().with_render_sensor_model()
 SCENARIOS = ("figure8", "circle", "aggressive", "hover", "head-fast-turns", "head-look-around", "head-walk")
 
 
-def _eval(rec: Path, out: Path, msckf: MsckfParams | None) -> dict:
-    return evaluate_dataset(rec, out, EvalOptions("msckf", "klt", msckf=msckf, monitor=False))
+def _eval(rec: Path, out: Path, msckf: MsckfParams | None, monitor: bool = False) -> dict:
+    return evaluate_dataset(rec, out, EvalOptions("msckf", "klt", msckf=msckf, monitor=monitor))
 
 
 def test_measured_noise_is_overconfident_on_fast_motion_until_the_imu_errors_are_estimated(tmp_path):
@@ -53,6 +54,13 @@ def test_measured_noise_is_overconfident_on_fast_motion_until_the_imu_errors_are
     assert 0.75 < both["nees_pos_mean"] < 5.0
     assert both["nees_pos_mean"] < render["nees_pos_mean"] / 4.0
     assert both["ate_posyaw_m"] < 0.6 * min(default["ate_posyaw_m"], render["ate_posyaw_m"])
+    assert "--sensor-model render" in " ".join(default["notes"])  # the note on a render told 1 px
+    assert "sensor-model" not in " ".join(both["notes"])
+    # The whole model under the health monitor, with its own NIS reference: nothing raised on a nominal run.
+    model = _eval(rec, tmp_path / "model", RENDER_MODEL, monitor=True)
+    assert model["conditions"] == [] and 0.75 < model["nees_pos_mean"] < 5.0
+    told_px = RENDER_MODEL.pixel_sigma_px
+    assert expected_nis_per_dof("klt", told_px, 0.5, True) == MSCKF_RENDER_NOISE_NIS_PER_DOF
 
 
 @pytest.mark.slow

@@ -415,7 +415,10 @@ class MsckfEstimator:
         if self._runaway_count >= p.runaway_frames:
             self._declare_divergence(
                 f"runaway innovation: more than {p.runaway_reject_ratio:.0%} of the features failed the chi2 "
-                f"gate or the triangulation reprojection gate in {self._runaway_count} consecutive frames"
+                f"gate or the triangulation reprojection gate in {self._runaway_count} consecutive frames "
+                f"(told {p.pixel_sigma_px:g} px: the images do not fit the IMU's motion; usual causes are a "
+                "wrong camera-IMU time offset or extrinsic, which online calibration tells apart, or a pixel "
+                "noise smaller than the tracks')"
             )
 
     def _try_zupt(self, tracks: Tracks, t_imu: float) -> bool:
