@@ -22,6 +22,9 @@ are not kept).
 ``--set SECTION.FIELD=VALUE`` (repeatable) overrides one loop-closure parameter for an A/B check, e.g.
 ``--set verification.weight_by_octave=false`` or ``--set verification.max_yaw_sigma_deg=1.0``.
 
+``--sensor-model render`` gives the MSCKF the sensor model measured on the renders
+(:meth:`MsckfParams.with_render_sensor_model`; KLT only).
+
 ``--frontend sim`` runs the estimator on the recording's simulated feature tracks (fast); the loop closer
 still works on the rendered images, so the closures are the same kind as on KLT, only the odometry differs.
 """
@@ -47,6 +50,7 @@ from viotb.vio.headset_metrics import interpolate_poses
 from viotb.vio.lie import log_so3, quat_wxyz_to_rotmat
 from viotb.vio.loop import LoopClosureParams
 from viotb.vio.metrics import evaluate_trajectory
+from viotb.vio.msckf_params import SENSOR_MODELS, MsckfParams
 from viotb.vio.types import StateEstimate
 
 
@@ -130,6 +134,12 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="Keep the recordings.")
     ap.add_argument("--reclose", action="store_true", help="Rerun only the closer on kept recordings.")
     ap.add_argument("--set", action="append", default=[], help="SECTION.FIELD=VALUE parameter override.")
+    ap.add_argument(
+        "--sensor-model",
+        default="default",
+        choices=SENSOR_MODELS,
+        help="The MSCKF's sensor model (MsckfParams.with_sensor_model; render: KLT only).",
+    )
     args = ap.parse_args()
     params = loop_params(args.set)
     name = args.scenario
@@ -144,7 +154,8 @@ def main() -> None:
             res = reclose(data, ev, params)
         else:
             record_scenario(name, data, seed=seed, seconds=args.seconds, overwrite=True)
-            opts = EvalOptions(frontend=args.frontend, loop=LoopOptions(params))
+            msckf = MsckfParams().with_sensor_model(args.sensor_model)
+            opts = EvalOptions(frontend=args.frontend, loop=LoopOptions(params), msckf=msckf)
             res = evaluate_dataset(data, ev, opts, overwrite=True)
         errs = closure_errors(data, ev / "loop_closures.csv")
         worst_m = max((e[0] for e in errs), default=0.0)
@@ -171,6 +182,7 @@ def main() -> None:
         "scenario": name,
         "frontend": "as kept (--reclose)" if args.reclose else args.frontend,
         "set": args.set,
+        "sensor_model": args.sensor_model,
         "seeds": len(rows),
         "closures": sum(r["closures"] for r in rows),
         "false_closures": sum(r["false_closures"] for r in rows),
