@@ -21,16 +21,10 @@ from scipy.stats import chi2
 from viotb.envs.run.headset import HeadsetOptions, run_headset
 from viotb.envs.run.headset_report import METRIC_KEYS, headset_result
 from viotb.envs.scenarios.head_catalog import head_scenarios
+from viotb.envs.tools.cli_common import seed_range
 from viotb.envs.tools.jsonout import dumps_strict
 
 COLUMNS = (*METRIC_KEYS, "nees_pos_mean", "ms_per_frame_median", "ms_per_frame_p99")
-
-
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = text.split("-")
-        return list(range(int(lo), int(hi) + 1))
-    return [int(s) for s in text.split(",")]
 
 
 def nees_band(n_seeds: int, dof: int = 3, level: float = 0.95) -> tuple[float, float]:
@@ -94,7 +88,7 @@ def main() -> None:
     args = ap.parse_args()
 
     names = [s for s in args.scenarios.split(",") if s] or [s.name for s in head_scenarios()]
-    seeds = _seeds(args.seeds)
+    seeds = seed_range(args.seeds)
     rows = []
     for name in names:
         for cams in (int(c) for c in args.cameras.split(",")):

@@ -20,13 +20,7 @@ import json
 
 import numpy as np
 from viotb.envs.run.init_check import MOVING_STARTS, moving_start_monte_carlo
-
-
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(s) for s in text.split(",")]
+from viotb.envs.tools.cli_common import seed_range
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -69,7 +63,7 @@ def main() -> None:
             ap.error(f"--motions: unknown {unknown}; known: {[m for m, _ in MOVING_STARTS]}")
         starts = tuple(s for s in MOVING_STARTS if s[0] in wanted)
     rows = moving_start_monte_carlo(
-        _seeds(args.seeds), starts, estimator=args.estimator, max_delay_s=args.max_delay_s
+        seed_range(args.seeds), starts, estimator=args.estimator, max_delay_s=args.max_delay_s
     )
     print(json.dumps({"summary": summarize(rows), "rows": rows}, indent=1, default=float))
 

@@ -46,19 +46,13 @@ from viotb.envs.data.record import record_scenario
 from viotb.envs.data.tum import read_tum
 from viotb.envs.run.loop_glue import LoopOptions, apply_loop_closure, estimates_to_trajectory
 from viotb.envs.scenarios.registry import get_scenario, register
+from viotb.envs.tools.cli_common import seed_range
 from viotb.vio.headset_metrics import interpolate_poses
 from viotb.vio.lie import log_so3, quat_wxyz_to_rotmat
 from viotb.vio.loop import LoopClosureParams
 from viotb.vio.metrics import evaluate_trajectory
 from viotb.vio.msckf_params import SENSOR_MODELS, MsckfParams
 from viotb.vio.types import StateEstimate
-
-
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(s) for s in text.split(",")]
 
 
 def loop_params(settings: list[str]) -> LoopClosureParams:
@@ -148,7 +142,7 @@ def main() -> None:
         name = f"{name}-{args.scene}"
         register(dataclasses.replace(base, name=name, scene=args.scene), replace=True)
     rows = []
-    for seed in _seeds(args.seeds):
+    for seed in seed_range(args.seeds):
         data, ev = args.out / f"{name}-{seed}" / "data", args.out / f"{name}-{seed}" / "eval"
         if args.reclose:
             res = reclose(data, ev, params)

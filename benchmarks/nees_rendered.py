@@ -33,6 +33,7 @@ import numpy as np
 from viotb.envs.data.eval_options import EvalOptions
 from viotb.envs.data.evaluate import evaluate_dataset
 from viotb.envs.data.record import record_scenario
+from viotb.envs.tools.cli_common import seed_range
 from viotb.vio.msckf_params import MsckfParams
 from viotb.vio.window_params import WindowParams
 
@@ -67,13 +68,6 @@ def options(model: str) -> EvalOptions:
     return EvalOptions("msckf", "klt", msckf=msckf)
 
 
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(s) for s in text.split(",")]
-
-
 def summarize(rows: list[dict]) -> dict:
     """Per ``model/scenario``: runs, diverged, mean / min / max of ATE (cm) and of both NEES."""
     out: dict[str, dict] = {}
@@ -104,7 +98,7 @@ def main() -> None:
         options(model)
     rows = []
     for scenario in args.scenarios.split(","):
-        for seed in _seeds(args.seeds):
+        for seed in seed_range(args.seeds):
             rec = args.recordings / f"{scenario}-{seed}"
             if not (rec / "mav0").is_dir():
                 record_scenario(scenario, rec, seed=seed, seconds=args.seconds)

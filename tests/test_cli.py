@@ -236,3 +236,11 @@ def test_eval_of_a_diverging_run_exits_3_and_still_reports(runner, tmp_path):
     obj = json.loads(result.stdout.strip().splitlines()[-1])
     assert obj["diverged"] is True and obj["reason"]
     assert (tmp_path / "ev" / "estimate_tum.txt").is_file()
+
+
+def test_seed_range_reads_ranges_and_lists_and_names_bad_text():
+    from viotb.envs.tools.cli_common import seed_range
+
+    assert seed_range("0-3") == [0, 1, 2, 3] and seed_range("5") == [5] and seed_range("0,3,5") == [0, 3, 5]
+    with pytest.raises(ValueError, match="got 'a-b'"):
+        seed_range("a-b")

@@ -80,6 +80,21 @@ def seed_option() -> int:
     return typer.Option(0, "--seed", min=0, help="Random seed (>= 0); same seed, same result.")
 
 
+def seed_range(text: str) -> list[int]:
+    """Seeds from ``"0-19"`` (inclusive range) or ``"0,3,5"`` (the benchmarks' ``--seeds``).
+
+    Raises:
+        ValueError: Text that is neither (naming it).
+    """
+    try:
+        if "-" in text:
+            lo, hi = text.split("-")
+            return list(range(int(lo), int(hi) + 1))
+        return [int(s) for s in text.split(",")]
+    except ValueError:
+        raise ValueError(f"seeds must look like 0-19 or 0,3,5, got {text!r}") from None
+
+
 def quiet_option() -> bool:
     """The ``--quiet`` option (no progress on stderr)."""
     return typer.Option(False, "--quiet", "-q", help="No progress output on stderr.")
