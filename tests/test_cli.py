@@ -184,6 +184,9 @@ def test_cli_choices_match_the_factory():
 
     assert cli_common.ESTIMATORS == ESTIMATOR_NAMES and cli_common.FRONTENDS == FRONTEND_NAMES
     assert cli_data.IMU_GAP_POLICIES == IMU_GAP_POLICIES
+    from viotb.vio.msckf_params import SENSOR_MODELS
+
+    assert cli_data.SENSOR_MODEL_CHOICES == SENSOR_MODELS
 
 
 def test_short_fly_says_why_hover_rms_is_null(runner):
