@@ -87,7 +87,7 @@ def test_sensor_model_render_sets_the_measured_noise_the_imu_intrinsics_and_the_
     }
     assert out["estimated_frames"] > 0
     p = MsckfParams().with_render_sensor_model()
-    assert replace(p, imu_intrinsics="none", keyframing=MsckfParams().keyframing) == (
+    assert replace(p, imu_intrinsics="none", keyframing=MsckfParams().keyframing, max_update_gap_s=None) == (
         MsckfParams().with_render_klt_noise()
     )
 

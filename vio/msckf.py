@@ -128,6 +128,7 @@ class MsckfEstimator:
         self._health = HealthStatus(t_s=0.0, initialized=False)
         self._diverged_reason = ""
         self._runaway_count = 0
+        self._last_update_t_s: float | None = None  # the newest frame that updated (ZUPT or features)
         self._version = 0
         self._chain: PredictionChain | None = None
         self._published: tuple[PredictionChain, int, LazyCovarianceEstimate] | None = None  # estimate() memo
@@ -165,6 +166,7 @@ class MsckfEstimator:
             intr_cov,
         )
         self._version += 1
+        self._last_update_t_s = t_s
         self._health = HealthStatus(t_s=t_s, initialized=True)
         # Only a static initialization proves the platform is at rest; after any other (dynamic, or from an
         # external source such as a perturbed truth in the Gymnasium envs) the ZUPT stays off when
@@ -345,6 +347,7 @@ class MsckfEstimator:
                 self._focal_px,
                 self.calib_right,
                 self._focal_right_px,
+                use_oldest=self._update_gap_exceeded(frame.t_s),
             )
             if slam:
                 self.last_slam_stats = self._slam_step(st, frame.t_s, lm_obs, new, n_lost)
@@ -353,10 +356,18 @@ class MsckfEstimator:
                 if t_old is not None:
                     self.database.remove_frame(t_old)
         self._prev_frame_t_imu = t_imu
+        if stats.used > 0 or "zupt" in conditions:
+            self._last_update_t_s = frame.t_s
         self._version += 1
         self._check_divergence(stats)
         self.last_stats = stats
         self._health = self._make_health(frame.t_s, tracks, stats, tuple(conditions))
+
+    def _update_gap_exceeded(self, t_s: float) -> bool:
+        """Whether ``MsckfParams.max_update_gap_s`` has passed since the last update (ZUPT or features)."""
+        gap = self.params.max_update_gap_s
+        last = self._last_update_t_s
+        return gap is not None and last is not None and t_s - last > gap
 
     def _rotation_since_keyframe(self, st: State) -> tuple[np.ndarray | None, float]:
         """``(R_CrCn (3, 3), focal_px)`` for a rotation-compensated keyframe rule, else ``(None, focal_px)``.

@@ -310,6 +310,7 @@ def msckf_update(
     focal_px: float,
     calib_right: CameraCalibration | None = None,
     focal_right_px: float | None = None,
+    use_oldest: bool = False,
 ) -> UpdateStats:
     """Update ``st`` with the features that leave the window at ``t_now`` (they leave ``db`` too).
 
@@ -322,6 +323,8 @@ def msckf_update(
         focal_px: Cam0 focal length (px); ``p.pixel_sigma_px / focal_px`` is the normalized noise sigma.
         calib_right: Cam1 calibration for a stereo rig (None: mono, cam1 layer ignored).
         focal_right_px: Cam1 focal length (px) (default ``focal_px``).
+        use_oldest: Also use the features seen in the oldest clone although the window is not full
+            (``MsckfParams.max_update_gap_s``: the filter has gone too long without an update).
 
     Returns:
         What the update did.
@@ -331,7 +334,7 @@ def msckf_update(
     lost = db.features_lost(t_now)
     cand = lost
     times = st.clone_times
-    if len(st.clones) > p.max_clones:
+    if len(st.clones) > p.max_clones or (use_oldest and len(st.clones) >= p.min_track_length):
         cand = np.union1d(lost, db.features_seen_at(float(times[0])))
     if len(cand) == 0:
         return UpdateStats()
