@@ -210,7 +210,7 @@ class MsckfParams:
     def with_render_sensor_model(self) -> MsckfParams:
         """These settings with the sensor model measured on this project's rendered recordings.
 
-        Three parts, each for one cause of the inconsistency on the renders (README "Consistency per
+        Four parts, three for a cause of the inconsistency on the renders (README "Consistency per
         scenario", session 16): the KLT noise the tracks have there (:meth:`with_render_klt_noise`; the
         default 1 px is ~30x it, so the filter is underconfident); both IMU correction matrices estimated
         online (``imu_intrinsics="gyro+accel"``: the simulated IMU's 0.2 % scale and 0.05 deg
@@ -221,9 +221,9 @@ class MsckfParams:
         need once rotation no longer makes clones), and the oldest clone's features used after 0.5 s
         without an update (``max_update_gap_s``: spaced clones fill the window slowly after a still start,
         and the first update then came late and too strong: a divergence at takeoff in the pillars scene).
-        On 40 s KLT recordings (seeds 0-4 of seven scenarios)
-        the mean position NEES per scenario is 1.56-3.25 where the defaults give 0.36-6.63, and the ATE is
-        1.9-7.2x lower. For the renders with the right calibration only: a 10 ms time offset in the file
+        On 40 s KLT recordings (seeds 0-4 of seven scenarios) the mean position NEES per scenario is
+        1.77-2.73 on six and 5.68 on ``head-look-around``, where the defaults give 0.36-6.63, and the ATE
+        is 1.9-6.3x lower. For the renders with the right calibration only: a 10 ms time offset in the file
         makes it reject most features and declare divergence (the defaults fly on and the health monitor
         names the cause; with online calibration it finds and names both errors).
         """
