@@ -55,23 +55,25 @@ def test_bad_combinations_are_refused_with_the_flag_named(tmp_path: Path, extra:
     assert message in " ".join(res.output.replace("│", " ").split()), res.output
 
 
+def _told(sigma_px: float, walk_px2_per_px: float, intrinsics: str, rotation_compensated: bool) -> dict:
+    """The ``msckf_settings`` a result names for these settings."""
+    return {
+        "pixel_sigma_px": sigma_px,
+        "track_random_walk_px2_per_px": walk_px2_per_px,
+        "imu_intrinsics": intrinsics,
+        "rotation_compensated_keyframes": rotation_compensated,
+    }
+
+
 def test_real_euroc_with_gyro_intrinsics_and_render_noise_reports_its_settings(tmp_path: Path) -> None:
     """On the real EuRoC micro folder: runs, initializes, and the JSON names what the filter was told."""
     out = _result(tmp_path, "--imu-intrinsics", "gyro", "--klt-noise", "render")
-    assert out["msckf_settings"] == {
-        "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
-        "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
-        "imu_intrinsics": "gyro",
-        "rotation_compensated_keyframes": False,
-    }
+    told = _told(RENDER_KLT_PIXEL_SIGMA_PX, RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX, "gyro", False)
+    assert out["msckf_settings"] == told
     assert out["estimated_frames"] > 0
     default = MsckfParams()
-    assert _result(tmp_path)["msckf_settings"] == {
-        "pixel_sigma_px": default.pixel_sigma_px,
-        "track_random_walk_px2_per_px": default.klt.track_random_walk_px2_per_px,
-        "imu_intrinsics": "none",
-        "rotation_compensated_keyframes": False,
-    }
+    told = _told(default.pixel_sigma_px, default.klt.track_random_walk_px2_per_px, "none", False)
+    assert _result(tmp_path)["msckf_settings"] == told
 
 
 def test_sensor_model_render_sets_the_measured_noise_the_imu_intrinsics_and_the_clone_spacing(
@@ -79,12 +81,8 @@ def test_sensor_model_render_sets_the_measured_noise_the_imu_intrinsics_and_the_
 ) -> None:
     """``--sensor-model render`` = ``MsckfParams().with_render_sensor_model()``, named in the JSON."""
     out = _result(tmp_path, "--sensor-model", "render")
-    assert out["msckf_settings"] == {
-        "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
-        "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
-        "imu_intrinsics": "gyro+accel",
-        "rotation_compensated_keyframes": True,
-    }
+    told = _told(RENDER_KLT_PIXEL_SIGMA_PX, RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX, "gyro+accel", True)
+    assert out["msckf_settings"] == told
     assert out["estimated_frames"] > 0
     p = MsckfParams().with_render_sensor_model()
     assert replace(p, imu_intrinsics="none", keyframing=MsckfParams().keyframing, max_update_gap_s=None) == (
