@@ -81,7 +81,7 @@ def test_render_sensor_model_nees_monte_carlo(tmp_path, scenario):
     the model: ``figure8`` 0.89 -> 2.61, 2.75 -> 1.03 cm; ``circle`` 1.31 -> 2.50, 3.20 -> 1.01;
     ``aggressive`` 6.63 -> 2.73, 4.29 -> 0.82; ``hover`` 0.46 -> 1.77, 0.67 -> 0.31; ``head-fast-turns``
     0.36 -> 2.03, 1.18 -> 0.62; ``head-walk`` 2.90 -> 2.20, 4.61 -> 1.19. ``head-look-around`` 2.82 ->
-    5.68 (above the band: the update-gap rule reuses its long tracks), 10.3 -> 1.62 cm: a strict xfail.
+    5.68 (above the band since the update-gap rule; cause not found), 10.3 -> 1.62 cm: a strict xfail.
     """
     runs, defaults = [], []
     for seed in range(5):
