@@ -11,7 +11,8 @@ Each test compares configurations of the same filter on the same recording, agai
 - the short version (default suite): one 12 s ``aggressive`` recording;
 - a closed-loop hover on ``--sensor-model render`` (the whole model) against the default;
 - the Monte Carlo (slow): the whole model on 40 s recordings, seeds 0-4, of issue #13's seven scenarios,
-  whose mean position NEES must lie in issue #13's band [1.5, 5].
+  whose mean position NEES must lie in issue #13's band [1.5, 5] (``head-look-around``, at 5.68, is a
+  strict xfail).
 """
 
 from __future__ import annotations
