@@ -76,9 +76,10 @@ def captured_updates():
     calls = []
     real = msckf_module.msckf_update
 
-    def capture(*args):
+    def capture(*args, **kwargs):
+        assert not kwargs.get("use_oldest")  # no update-gap rule here: the replay calls without it
         calls.append(copy.deepcopy(args))
-        return real(*args)
+        return real(*args, **kwargs)
 
     mp = pytest.MonkeyPatch()
     mp.setattr(msckf_module, "msckf_update", capture)
