@@ -96,6 +96,7 @@ def main() -> None:
     models = args.models.split(",")
     for model in models:
         options(model)
+    keys = ("ate_posyaw_m", "nees_pos_mean", "nees_rot_mean", "ms_per_frame_median", "diverged")
     rows = []
     for scenario in args.scenarios.split(","):
         for seed in seed_range(args.seeds):
@@ -105,7 +106,6 @@ def main() -> None:
             for model in models:
                 with tempfile.TemporaryDirectory() as out:
                     m = evaluate_dataset(rec, Path(out), options(model))
-                keys = ("ate_posyaw_m", "nees_pos_mean", "nees_rot_mean", "ms_per_frame_median", "diverged")
                 row = {"model": model, "scenario": scenario, "seed": seed}
                 rows.append({**row, **{k: m.get(k) for k in keys}})
     print(json.dumps({"rows": rows, "summary": summarize(rows)}, indent=1))

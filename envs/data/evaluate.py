@@ -59,10 +59,9 @@ def render_noise_hint(ds: EurocDataset, opts: EvalOptions) -> str:
     simulated IMU has scale and misalignment errors; the filter told 1 px is underconfident there, and its
     measured model is the render noise with the IMU intrinsics (README "Consistency per scenario").
     """
-    told = opts.msckf if opts.msckf is not None else MsckfParams()
     if opts.estimator != "msckf" or opts.frontend != "klt" or ds.landmarks_W is None:
         return ""
-    if told.pixel_sigma_px != MsckfParams().pixel_sigma_px:
+    if opts.msckf is not None and opts.msckf.pixel_sigma_px != MsckfParams().pixel_sigma_px:
         return ""
     return (
         "one of this project's renders, told 1 px: its measured model is --sensor-model render "
