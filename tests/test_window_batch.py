@@ -60,7 +60,7 @@ def test_stacked_imu_factors_match_imu_factor():
         imu.append((k, pre))
     stack = ImuFactorStack.build(imu, noise)
     R, rest = stack_values(xs)
-    r, J_i, J_j = imu_factors(stack, R, rest)
+    r, J_i, J_j, _ = imu_factors(stack, R, rest)
     for i, (k, pre) in enumerate(imu):
         r1, J_i1, J_j1, C = imu_factor(pre, xs[k], xs[k + 1], noise)
         np.testing.assert_allclose(r[i], r1, atol=1e-12)

@@ -80,8 +80,12 @@ class ImuPreintegration:
             raise ValueError(f"dt_s must be a positive finite number of seconds, got {dt_s}")
         a = accel - self._ba
         w_dt = (gyro - self._bg) * dt_s
+        half, G_half = np.eye(3), np.zeros((3, 3))
         if rotate_midpoint:
-            a = exp_so3(0.5 * w_dt) @ a
+            # The turned force moves with the step's rate: d(half a) / dw = -half [a]x Jr(w dt / 2) dt / 2.
+            half = exp_so3(0.5 * w_dt)
+            G_half = -half @ skew(a) @ right_jacobian_so3(0.5 * w_dt) * (0.5 * dt_s)
+            a = half @ a
         dR_step = exp_so3(w_dt)
         jr_step = right_jacobian_so3(w_dt)
         dR_a_skew = self._dR @ skew(a)
@@ -104,10 +108,13 @@ class ImuPreintegration:
         self._cov = 0.5 * (cov + cov.T)
 
         # 2. Bias Jacobians (Forster appendix B, eqs. 69-70); position and velocity use the old dR, dR_dbg.
-        self._dp_dba += self._dv_dba * dt_s - 0.5 * self._dR * dt2
-        self._dp_dbg += self._dv_dbg * dt_s - 0.5 * dR_a_skew @ self._dR_dbg * dt2
-        self._dv_dba -= self._dR * dt_s
-        self._dv_dbg -= dR_a_skew @ self._dR_dbg * dt_s
+        #    The step's force in the start frame, dR a, moves with the rotation and (midpoint) the rate.
+        dRa_dbg = -dR_a_skew @ self._dR_dbg - self._dR @ G_half
+        dRa_dba = -self._dR @ half
+        self._dp_dba += self._dv_dba * dt_s + 0.5 * dRa_dba * dt2
+        self._dp_dbg += self._dv_dbg * dt_s + 0.5 * dRa_dbg * dt2
+        self._dv_dba += dRa_dba * dt_s
+        self._dv_dbg += dRa_dbg * dt_s
         self._dR_dbg = dR_step.T @ self._dR_dbg - jr_step * dt_s
 
         # 3. Increments (Forster eq. 49 / appendix A).

@@ -77,16 +77,8 @@ from viotb.vio.window_solver import (
 from viotb.vio.window_weights import stereo_weights
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
-__all__ = [
-    "NX",
-    "WindowEstimator",
-    "WindowParams",
-    "boxminus",
-    "imu_factor",
-    "preintegrate",
-    "reprojection",
-    "retract",
-]
+__all__ = ["NX", "WindowEstimator", "WindowParams", "boxminus", "imu_factor", "preintegrate", "reprojection"]
+__all__ += ["retract"]
 
 
 class WindowEstimator:
@@ -246,7 +238,7 @@ class WindowEstimator:
             return self._est_cache[2]
         readings = self._readings(kf.t_s, t_new) if t_new > kf.t_s + 1e-9 else None
         gyro = None if self._last_imu is None else self._last_imu.gyro_B_rad_s
-        args = (self.noise, self.params.midpoint_rotation, gyro)
+        args = (self.noise, self.params.midpoint_rotation, gyro, self._intrinsics())
         est = keyframe_estimate(kf.x, self._cov_newest, kf.t_s, readings, *args)
         self._est_cache = (self._version, t_new, est)
         return est
@@ -312,6 +304,10 @@ class WindowEstimator:
         )
         return test is not None
 
+    def _intrinsics(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The IMU's current correction matrices ``(T_g, T_a)`` when they are estimated (from the start)."""
+        return None if self._cal_off is None else self._cal_off.imu_matrices()
+
     def _readings(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         t, g, a = self.buffer.arrays()
         return select_imu_readings(t, g, a, t0, t1)
@@ -327,7 +323,7 @@ class WindowEstimator:
         self._n_bad = 0
         # 1. Preintegrate and predict the new keyframe (Forster eq. 33).
         readings = self._readings(last.t_s, t_s)
-        pre = preintegrate(*readings, last.x, self.noise, self.params.midpoint_rotation)
+        pre = preintegrate(*readings, last.x, self.noise, p.midpoint_rotation, self._intrinsics())
         x = predict(pre, last.x)
         obs = {int(i): xy for i, xy in zip(tracks.ids.tolist(), tracks.xy_norm, strict=True)}
         self._innovation = InnovationTest()
@@ -377,10 +373,8 @@ class WindowEstimator:
         """
         p = self.params
         # 0. Re-integrate preintegrations whose bias moved far from its linearization point (lesson ch. 5).
-        tol = (p.repropagate_gyro_bias_rad_s, p.repropagate_accel_bias_m_s2)
-        repropagate(
-            self.links, [kf.x for kf in self.keyframes], self.noise, *tol, self.params.midpoint_rotation
-        )
+        tol = (p.repropagate_gyro_bias_rad_s, p.repropagate_accel_bias_m_s2, p.midpoint_rotation)
+        repropagate(self.links, [kf.x for kf in self.keyframes], self.noise, *tol, self._intrinsics())
         due = self._cal is None and len(self.keyframes) >= p.calibration_start_keyframes
         if due and self._cal_off is not None:  # the calibration's variables enter the window
             self._cal, self.prior = self._cal_off, self._cal_off.start_prior(self.prior)

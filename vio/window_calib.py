@@ -1,11 +1,15 @@
-"""Online camera-IMU calibration of the sliding window: extrinsics per camera and one time offset.
+"""Online calibration of the sliding window: extrinsics per camera, one time offset, the IMU intrinsics.
 
 Variables (kept after the keyframes' error states in the window's system, never marginalized): per camera
 ``c`` the extrinsic rotation and translation, ``R_BC = R_BC,0 Exp(dtheta_c)`` (right perturbation, camera
 frame: the MSCKF's and :class:`viotb.vio.types.CalibrationDrift`'s convention) and ``p_BC = p_BC,0 + dp_c``
-(m, body frame), and the correction ``td`` (s) of the file's camera-IMU time offset (the cameras share
-one clock). The full vector is ``[dtheta_0, dp_0, dtheta_1, dp_1, ..., td]`` (6 per camera + 1); only the
-estimated entries (:class:`CalibLayout`) enter the system.
+(m, body frame), the correction ``td`` (s) of the file's camera-IMU time offset (the cameras share
+one clock), and the IMU's correction matrices ``w_B = T_g (w_m - b_g)``, ``a_B = T_a (a_m - b_a)`` (the
+MSCKF's model, :mod:`viotb.vio.imu_intrinsics`; additive, nine entries each, row-major). The full vector
+is ``[dtheta_0, dp_0, dtheta_1, dp_1, ..., td, vec(dT_g), vec(dT_a)]`` (6 per camera + 1 + 18); only the
+estimated entries (:class:`CalibLayout`) enter the system. The intrinsics enter the IMU factors only
+(:func:`viotb.vio.window_batch.imu_factors`, the preintegration's first-order intrinsics Jacobians), the
+extrinsics and time offset the reprojection factors only.
 
 Time offset as in VINS-Mono (Qin and Shen, "Online Temporal Calibration for Monocular Visual-Inertial
 Systems", IROS 2018, eq. 5-6): the keyframe's state is at the frame's IMU time by the file's offset; a
@@ -23,7 +27,7 @@ angular rate (the gyro reading at the keyframe less its bias; :func:`image_veloc
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from viotb.vio.camera import CameraCalibration
@@ -39,22 +43,50 @@ class CalibLayout:
         n_cams: Cameras (1 mono, 2 stereo).
         extrinsics: Estimate every camera's ``R_BC``, ``p_BC``.
         time_offset: Estimate the time offset correction ``td``.
+        gyro_intrinsics: Estimate the gyro's correction matrix ``T_g``.
+        accel_intrinsics: Estimate the accelerometer's ``T_a``.
     """
 
     n_cams: int
     extrinsics: bool
     time_offset: bool
+    gyro_intrinsics: bool = False
+    accel_intrinsics: bool = False
+
+    @property
+    def td_index(self) -> int:
+        """Index of ``td`` in the full vector (after the cameras' 6 entries each)."""
+        return 6 * self.n_cams
 
     @property
     def full_dim(self) -> int:
-        """Length of the full vector ``[dtheta_c, dp_c]_c, td`` (6 per camera + 1)."""
-        return 6 * self.n_cams + 1
+        """Length of the full vector ``[dtheta_c, dp_c]_c, td, vec(dT_g), vec(dT_a)`` (6 per camera + 19)."""
+        return 6 * self.n_cams + 19
 
     @property
     def active(self) -> np.ndarray:
         """Indices of the estimated entries in the full vector, shape (C,)."""
         idx = list(range(6 * self.n_cams)) if self.extrinsics else []
-        return np.array(idx + ([6 * self.n_cams] if self.time_offset else []), dtype=np.int64)
+        idx += [self.td_index] if self.time_offset else []
+        idx += list(range(self.td_index + 1, self.td_index + 10)) if self.gyro_intrinsics else []
+        idx += list(range(self.td_index + 10, self.td_index + 19)) if self.accel_intrinsics else []
+        return np.array(idx, dtype=np.int64)
+
+    @property
+    def camera_terms(self) -> bool:
+        """Whether any estimated entry enters the reprojection factors (extrinsics or time offset)."""
+        return self.extrinsics or self.time_offset
+
+    @property
+    def imu_terms(self) -> bool:
+        """Whether any estimated entry enters the IMU factors (a correction matrix)."""
+        return self.gyro_intrinsics or self.accel_intrinsics
+
+    def imu_columns(self, J_full_T: np.ndarray) -> np.ndarray:
+        """The estimated columns of Jacobians w.r.t. ``[vec(dT_g), vec(dT_a)]`` (..., 18) -> (..., C)."""
+        J = np.zeros((*J_full_T.shape[:-1], self.full_dim))
+        J[..., self.td_index + 1 :] = J_full_T
+        return J[..., self.active]
 
     @property
     def dim(self) -> int:
@@ -70,11 +102,15 @@ class CalibValues:
         R_BC: Per camera, camera-to-body rotation, shape (3, 3).
         p_BC: Per camera, camera origin in B (m), shape (3,).
         td_s: Time offset correction (s), added to the file's ``time_offset_s``.
+        T_g: Gyro correction matrix ``w_B = T_g (w_m - b_g)``, shape (3, 3) (identity: none).
+        T_a: Accelerometer correction matrix ``a_B = T_a (a_m - b_a)``, shape (3, 3).
     """
 
     R_BC: tuple[np.ndarray, ...]
     p_BC: tuple[np.ndarray, ...]
     td_s: float
+    T_g: np.ndarray = field(default_factory=lambda: np.eye(3))
+    T_a: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     @classmethod
     def from_files(cls, calib: CameraCalibration, calib_right: CameraCalibration | None) -> CalibValues:
@@ -90,13 +126,23 @@ class CalibValues:
         """``(R_BC (3, 3), p_BC (3,) m)`` per camera."""
         return list(zip(self.R_BC, self.p_BC, strict=True))
 
+    def imu_matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(T_g, T_a)``, each shape (3, 3)."""
+        return self.T_g, self.T_a
+
+    def imu_vector(self) -> np.ndarray:
+        """``[vec(T_g), vec(T_a)]`` row-major, shape (18,)."""
+        return np.concatenate([self.T_g.ravel(), self.T_a.ravel()])
+
     def retract(self, layout: CalibLayout, dx: np.ndarray) -> CalibValues:
         """``self [+] dx`` for the estimated entries ``dx`` (C,)."""
         d = np.zeros(layout.full_dim)
         d[layout.active] = dx
         R = tuple(R @ exp_so3(d[6 * c : 6 * c + 3]) for c, R in enumerate(self.R_BC))
         p = tuple(p + d[6 * c + 3 : 6 * c + 6] for c, p in enumerate(self.p_BC))
-        return CalibValues(R, p, self.td_s + float(d[-1]))
+        k = layout.td_index
+        T_g, T_a = self.T_g + d[k + 1 : k + 10].reshape(3, 3), self.T_a + d[k + 10 : k + 19].reshape(3, 3)
+        return CalibValues(R, p, self.td_s + float(d[k]), T_g, T_a)
 
     def boxminus(self, layout: CalibLayout, x0: CalibValues) -> np.ndarray:
         """``self [-] x0`` of the estimated entries, shape (C,)."""
@@ -104,7 +150,9 @@ class CalibValues:
         for c in range(layout.n_cams):
             d[6 * c : 6 * c + 3] = log_so3(x0.R_BC[c].T @ self.R_BC[c])
             d[6 * c + 3 : 6 * c + 6] = self.p_BC[c] - x0.p_BC[c]
-        d[-1] = self.td_s - x0.td_s
+        k = layout.td_index
+        d[k] = self.td_s - x0.td_s
+        d[k + 1 :] = self.imu_vector() - x0.imu_vector()
         return d[layout.active]
 
 
@@ -155,7 +203,7 @@ def calib_jacobian(
     J = np.zeros((len(q), 2, layout.full_dim))
     J[:, :, 6 * cam : 6 * cam + 3] = dz @ sk
     J[:, :, 6 * cam + 3 : 6 * cam + 6] = -A
-    J[:, :, -1] = vel
+    J[:, :, layout.td_index] = vel
     return J[:, :, layout.active], vel
 
 
@@ -188,7 +236,7 @@ def calibration_drift(
     sig_full[layout.active] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     out: dict = {}
     if layout.time_offset:
-        out["time_offset_s"], out["time_offset_sigma_s"] = values.td_s, float(sig_full[-1])
+        out["time_offset_s"], out["time_offset_sigma_s"] = values.td_s, float(sig_full[layout.td_index])
     if layout.extrinsics:
         out["rotation_BC_rad"] = log_so3(np.asarray(given.R_BC).T @ values.R_BC[0])
         out["rotation_sigma_rad"] = sig_full[0:3]

@@ -6,7 +6,9 @@ through its observations, so it stays with the poses in the Schur complement), a
 its keyframes' states and then the calibration (marginalizing the oldest keyframe keeps the calibration:
 the prior on it accumulates the information of every marginalized landmark). :func:`viotb.vio.window_solver.
 linearize` calls :meth:`CalibTerms.add_prior` and :meth:`CalibTerms.add_reprojection` instead of its own
-prior and reprojection steps when it is given the calibration values, and :meth:`CalibTerms.assemble` last.
+prior and reprojection steps when it is given the calibration values (the latter only when the extrinsics
+or the time offset are estimated), :meth:`CalibTerms.add_imu` when the IMU's correction matrices are, and
+:meth:`CalibTerms.assemble` last.
 """
 
 from __future__ import annotations
@@ -137,6 +139,22 @@ class CalibTerms:
             self.H_cc += both[:, sl]
             self.g_c += both[:, -1]
         return cost, n_res
+
+    def add_imu(self, k: np.ndarray, WJ_c: np.ndarray, WJ: np.ndarray, r_w: np.ndarray) -> None:
+        """The IMU factors' calibration blocks (the correction matrices' columns); the cost is the caller's.
+
+        Args:
+            k: Each factor's first keyframe, shape (K,) (it joins ``k`` and ``k + 1``).
+            WJ_c: Whitened Jacobians w.r.t. the estimated entries, shape (K, NX, C).
+            WJ: Whitened Jacobians w.r.t. keyframes ``k`` and ``k + 1``, shape (K, NX, 2 NX).
+            r_w: Whitened residuals, shape (K, NX).
+        """
+        pair = np.swapaxes(WJ, 1, 2) @ WJ_c
+        H_kc = self.H_xc.reshape(-1, NX, WJ_c.shape[2])
+        H_kc[k] += pair[:, :NX]  # the factors' first keyframes differ: fancy-indexed += adds each
+        H_kc[k + 1] += pair[:, NX:]
+        self.H_cc += np.einsum("kia,kib->ab", WJ_c, WJ_c)
+        self.g_c += np.einsum("kia,ki->a", WJ_c, r_w)
 
     def assemble(
         self, H: np.ndarray, g: np.ndarray, E_flat: np.ndarray

@@ -54,13 +54,16 @@ def preintegrate(
     x: ImuValues,
     noise: ImuNoise,
     rotate_midpoint: bool = False,
+    intrinsics: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> ImuPreintegration:
     """Preintegrate readings ``(t (n,), gyro (n, 3), accel (n, 3))`` at the biases of ``x`` (midpoints).
 
     All readings at once (:class:`viotb.vio.window_batch.BatchPreintegration`; the sample-by-sample
-    :meth:`ImuPreintegration.integrate` gives the same to round-off).
+    :meth:`ImuPreintegration.integrate` gives the same to round-off); with ``intrinsics`` ``(T_g, T_a)``
+    the readings are corrected by the IMU's matrices and their Jacobians kept.
     """
-    return BatchPreintegration(t_s, gyro, accel, x.gyro_bias_rad_s, x.accel_bias_m_s2, noise, rotate_midpoint)
+    bg, ba = x.gyro_bias_rad_s, x.accel_bias_m_s2
+    return BatchPreintegration(t_s, gyro, accel, bg, ba, noise, rotate_midpoint, intrinsics)
 
 
 def repropagate(
@@ -70,20 +73,21 @@ def repropagate(
     gyro_tol_rad_s: float,
     accel_tol_m_s2: float,
     rotate_midpoint: bool = False,
+    intrinsics: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Re-integrate (in place) the links whose start keyframe's bias moved far from their linearization point.
 
     Link ``k`` (from keyframe ``xs[k]``) is re-integrated when its gyro bias moved more than
     ``gyro_tol_rad_s``
     or its accelerometer bias more than ``accel_tol_m_s2``; otherwise the first-order correction of Forster
-    eq. 44 serves.
+    eq. 44 serves. A re-integrated link takes the current IMU correction matrices ``intrinsics``.
     """
     for link, xi in zip(links, xs, strict=False):
         if (
             np.linalg.norm(xi.gyro_bias_rad_s - link.pre.gyro_bias_rad_s) > gyro_tol_rad_s
             or np.linalg.norm(xi.accel_bias_m_s2 - link.pre.accel_bias_m_s2) > accel_tol_m_s2
         ):
-            link.pre = preintegrate(*link.readings, xi, noise, rotate_midpoint)
+            link.pre = preintegrate(*link.readings, xi, noise, rotate_midpoint, intrinsics)
 
 
 def predict(pre: ImuPreintegration, x: ImuValues) -> ImuValues:
@@ -112,20 +116,23 @@ def keyframe_estimate(
     noise: ImuNoise,
     rotate_midpoint: bool,
     gyro_B_rad_s: np.ndarray | None,
+    intrinsics: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> StateEstimate:
     """A keyframe's values ``x`` and covariance ``P`` (NX, NX) at ``t_s``, propagated through ``readings``.
 
     Forster eq. 33 and the factor's Jacobians (:func:`predict`, :func:`predict_covariance`) to the end of
     ``readings`` (``(t_s (n,), gyro (n, 3), accel (n, 3))`` from the keyframe on), or at ``t_s`` when None;
-    the angular rate is ``gyro_B_rad_s`` (the newest reading) less the gyro bias (zero when None).
+    the angular rate is ``gyro_B_rad_s`` (the newest reading) less the gyro bias (zero when None), both
+    corrected by the IMU matrices ``intrinsics`` ``(T_g, T_a)`` when given.
     """
     if readings is not None:
-        pre = preintegrate(*readings, x, noise, rotate_midpoint)
+        pre = preintegrate(*readings, x, noise, rotate_midpoint, intrinsics)
         xj = predict(pre, x)
         x, P, t_s = xj, predict_covariance(pre, x, xj, P, noise), readings[0][-1]
     omega = np.zeros(3)
     if gyro_B_rad_s is not None:
         omega = np.asarray(gyro_B_rad_s, dtype=float) - x.gyro_bias_rad_s
+        omega = omega if intrinsics is None else intrinsics[0] @ omega
     return StateEstimate(
         t_s=t_s,
         R_WB=x.R_WB.copy(),

@@ -126,6 +126,11 @@ class WindowParams:
         time_offset_sigma_s: Prior sigma (s) of the time offset.
         calibration_start_keyframes: The calibration's variables (and their prior) enter the window once it
             holds this many keyframes after an initialization; before, the files' calibration is fixed.
+        imu_intrinsics: Estimate the IMU's correction matrices online (the MSCKF's model,
+            :mod:`viotb.vio.imu_intrinsics`): ``"none"`` (default), ``"gyro"`` (``T_g``) or ``"gyro+accel"``
+            (both). Variables of the window's calibration (:mod:`viotb.vio.window_calib`) entering the IMU
+            factors through the preintegration's first-order Jacobians; with ``track_noise`` too.
+        imu_intrinsic_sigma: Prior sigma of every entry of an estimated correction matrix (the MSCKF's).
     """
 
     window_size: int = 10
@@ -173,6 +178,8 @@ class WindowParams:
     estimate_time_offset: bool = False
     time_offset_sigma_s: float = 0.005
     calibration_start_keyframes: int = 10
+    imu_intrinsics: str = "none"
+    imu_intrinsic_sigma: float = 0.005
 
     def with_render_klt_noise(self) -> WindowParams:
         """These settings with the KLT noise model measured on this project's renders (white and walk).

@@ -132,7 +132,8 @@ def prepare(f: Factors, w8: FactorWeights, n_kf: int, n_lm: int) -> PreparedFact
         if obs is not None and len(obs[0]) and w8.track_q > 0.0:
             sums.append(track_pairs(obs, n_kf, n_lm, focal_px, w8.track_q))
             continue
-        if w8.kernels == "numba" and f.calib is None:  # the compiled blocks sum themselves
+        # The compiled blocks sum themselves; the calibration's reprojection terms need the sums.
+        if w8.kernels == "numba" and (f.calib is None or not f.calib.layout.camera_terms):
             sums.append(None)
             continue
         kf_i, lm_i = (np.zeros(0, dtype=np.int64),) * 2 if obs is None else obs[:2]
@@ -181,9 +182,10 @@ def linearize(
     cal = None if calib is None else CalibTerms.zeros(N, L, f.calib.layout.dim)
     # a. IMU factors (Forster eq. 45), whitened by the Cholesky factor of their information.
     if len(prep.imu.k):
-        r, J_i, J_j = imu_factors(prep.imu, R, rest, jacobians=xs_lin is None)
+        intr = calib.imu_vector() if cal is not None and f.calib.layout.imu_terms else None
+        r, J_i, J_j, J_T = imu_factors(prep.imu, R, rest, xs_lin is None, intr)
         if xs_lin is not None:
-            _, J_i, J_j = imu_factors(prep.imu, R_lin, rest_lin)
+            _, J_i, J_j, J_T = imu_factors(prep.imu, R_lin, rest_lin, True, intr)
         W = prep.imu.sqrt_info
         r_w = np.einsum("kij,kj->ki", W, r)
         J = np.concatenate([W @ J_i, W @ J_j], axis=2)
@@ -199,6 +201,8 @@ def linearize(
         cost += 0.5 * float(np.sum(r_w * r_w))
         n_res += NX * len(prep.imu.k)
         imu_blocks = (k_i, JtJ, Jtr)
+        if cal is not None and J_T is not None:  # the IMU's correction matrices (window_calib)
+            cal.add_imu(k_i, W @ f.calib.layout.imu_columns(J_T), J, r_w)
     # b. Linear prior (OKVIS eq. 9): 0.5 dx^T H dx + g^T dx at dx = x [-] x0.
     pr = f.prior
     if pr is not None:
@@ -247,7 +251,7 @@ def linearize(
     if f.obs_right is not None and len(f.obs_right[0]) and w8.R_BC1 is not None:
         cams.append((f.obs_right, (w8.R_BC1, w8.p_BC1, w8.sigma_norm1, k_h), prep.sums[1]))
     poses = (R, rest[:, :3], R_lin, rest_lin[:, :3])
-    if cal is not None:  # the calibration's values replace the extrinsics (window_calib_system)
+    if cal is not None and f.calib.layout.camera_terms:  # its values replace the extrinsics (window_calib)
         cams_c = [(obs, cam[2], k_h, sums) for obs, cam, sums in cams]
         arrays = (H, g, H_ll, g_l, E, max_err)
         c, n = cal.add_reprojection(arrays, poses, rest, pts, cams_c, calib, f.calib, blocks)
