@@ -7,14 +7,13 @@ against preintegrating readings corrected beforehand.
 
 import numpy as np
 import pytest
+from random_states import random_imu_values
 from viotb.vio.lie import log_so3
 from viotb.vio.types import ImuNoise
 from viotb.vio.window_batch import BatchPreintegration, ImuFactorStack, imu_factors, stack_values
 from viotb.vio.window_calib import CalibLayout, CalibValues
 from viotb.vio.window_factors import predict
 from viotb.vio.window_params import WindowParams
-
-from random_states import random_imu_values
 
 
 def _readings(rng: np.random.Generator, n: int = 25) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -162,8 +161,8 @@ def test_layout_places_the_intrinsics_after_the_time_offset():
 
 
 def test_bad_intrinsics_choice_is_named():
+    from test_window import _calib
     from viotb.vio.window import WindowEstimator
-    from test_window import _calib  # noqa: PLC0415
 
     with pytest.raises(ValueError, match="imu_intrinsics.*'accel'"):
         WindowEstimator(_calib(), ImuNoise(), WindowParams(imu_intrinsics="accel"))
