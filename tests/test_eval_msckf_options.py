@@ -34,18 +34,23 @@ def _result(tmp_path: Path, *extra: str) -> dict:
     ("extra", "message"),
     [
         (
-            ("--imu-intrinsics", "gyro", "--estimator", "window"),
-            "--imu-intrinsics gyro needs --estimator msckf",
+            ("--imu-intrinsics", "gyro", "--estimator", "imu-only"),
+            "--imu-intrinsics gyro: the sensor model, KLT noise and IMU intrinsics options need the msckf or "
+            "window, got 'imu-only'",
         ),
         (
-            ("--klt-noise", "render", "--estimator", "imu-only"),
-            "--klt-noise render needs --estimator msckf or window",
+            ("--klt-noise", "render", "--estimator", "ground-truth"),
+            "--klt-noise render: the sensor model",
         ),
-        (("--klt-noise", "render", "--frontend", "sim"), "a model of the klt front end"),
-        (("--klt-noise", "render", "--estimator", "window", "--calibrate"), "needs white track noise"),
+        (("--klt-noise", "render", "--frontend", "sim"), "models of the klt front end, got 'sim'"),
+        (
+            ("--klt-noise", "render", "--estimator", "window", "--calibrate"),
+            "--klt-noise render --calibrate: the window told the render KLT noise cannot calibrate online",
+        ),
+        (("--sensor-model", "render", "--estimator", "window", "--calibrate"), "need white track noise"),
         (("--imu-intrinsics", "accel"), "unknown IMU intrinsics choice 'accel'"),
-        (("--sensor-model", "render", "--estimator", "window"), "needs --estimator msckf and --frontend klt"),
-        (("--sensor-model", "render", "--frontend", "sim"), "needs --estimator msckf and --frontend klt"),
+        (("--sensor-model", "render", "--estimator", "imu-only"), "need the msckf or window, got 'imu-only'"),
+        (("--sensor-model", "render", "--frontend", "sim"), "models of the klt front end, got 'sim'"),
         (("--sensor-model", "render", "--imu-intrinsics", "gyro"), "sets the KLT noise and the IMU"),
     ],
 )
@@ -96,9 +101,28 @@ def test_the_window_takes_the_render_noise_model_and_the_result_names_it(tmp_pat
     assert out["window_settings"] == {
         "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
         "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
+        "imu_intrinsics": "none",
     }
     assert out["msckf_settings"] is None and out["estimated_frames"] > 0
     told = WindowParams().with_render_klt_noise()
     assert told.track_noise and told.huber_threshold == WindowParams().huber_threshold  # gates in sigmas
-    default = {"pixel_sigma_px": 1.0, "track_random_walk_px2_per_px": 0.0}
+    default = {"pixel_sigma_px": 1.0, "track_random_walk_px2_per_px": 0.0, "imu_intrinsics": "none"}
     assert _result(tmp_path, "--estimator", "window")["window_settings"] == default
+
+
+def test_the_window_takes_the_render_sensor_model_and_the_imu_intrinsics(tmp_path: Path) -> None:
+    """``--estimator window --sensor-model render``: ``WindowParams().with_render_sensor_model()``.
+
+    The render noise and both IMU matrices; ``--imu-intrinsics gyro`` alone sets only ``T_g``. Both named.
+    """
+    out = _result(tmp_path, "--estimator", "window", "--sensor-model", "render")
+    assert out["window_settings"] == {
+        "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
+        "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
+        "imu_intrinsics": "gyro+accel",
+    }
+    assert out["estimated_frames"] > 0
+    p = WindowParams().with_render_sensor_model()
+    assert replace(p, imu_intrinsics="none") == WindowParams().with_render_klt_noise()
+    out = _result(tmp_path, "--estimator", "window", "--imu-intrinsics", "gyro")
+    assert out["window_settings"]["imu_intrinsics"] == "gyro" and out["estimated_frames"] > 0

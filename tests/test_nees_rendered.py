@@ -99,7 +99,7 @@ def test_closed_loop_hover_on_the_render_sensor_model_holds_closer_than_on_the_d
     """``fly-hover`` 20 s on rendered images (seed 0): hover RMS against the truth lower with ``render``.
 
     Measured, seeds 0 / 1: the default 1.46 / 2.91 cm, ``--sensor-model render`` 0.69 / 1.18 cm (max error
-    2.4 / 3.5 -> 0.89 / 1.41 cm). The model needs the MSCKF on KLT and says so otherwise.
+    2.4 / 3.5 -> 0.89 / 1.41 cm). The model needs the KLT front end and says so otherwise.
     """
     from viotb.envs.run.fly import fly
 
@@ -108,7 +108,7 @@ def test_closed_loop_hover_on_the_render_sensor_model_holds_closer_than_on_the_d
     for m in (default, render):
         assert not m["crashed"] and not m["diverged"]
     assert render["hover_rms_m"] < 0.7 * default["hover_rms_m"]
-    with pytest.raises(ValueError, match="needs the msckf on klt, got msckf on sim"):
+    with pytest.raises(ValueError, match="models of the klt front end, got 'sim'"):
         fly("fly-hover", "msckf", 1.0, 0, "sim", sensor_model="render")
     with pytest.raises(ValueError, match="unknown sensor model 'tuned'"):
         MsckfParams().with_sensor_model("tuned")

@@ -37,7 +37,7 @@ from viotb.envs.sim.vehicle import vehicle_params_from_model
 from viotb.vio.health import HealthMonitor
 from viotb.vio.imu_prediction import prefetch_covariances
 from viotb.vio.lie import rotz, yaw_from_rotmat
-from viotb.vio.msckf_params import MsckfParams
+from viotb.vio.model_options import model_settings
 from viotb.vio.recovery import RecoveringEstimator
 from viotb.vio.types import StateEstimate
 
@@ -97,8 +97,8 @@ def fly(
             (``FlyScenario.loop_closure``). With the ``sim`` front end the camera is rendered for the closer.
         recovery: Coast through a loss of tracking and re-initialize in the air (``RigConfig.recovery``)
             instead of stopping the flight on divergence; ``edit_rig`` may still turn it off.
-        sensor_model: The MSCKF's sensor model (:meth:`~viotb.vio.msckf_params.MsckfParams.with_sensor_model`;
-            ``"render"``: the one measured on these renders; ``msckf`` on ``klt`` only).
+        sensor_model: The estimator's sensor model (:func:`viotb.vio.model_options.model_settings`;
+            ``"render"``: the one measured on these renders; ``msckf`` or ``window`` on ``klt`` only).
 
     Returns:
         ``(metrics, log)``; metrics has ``hover_rms_m``, ``max_err_m``, ``ate_posyaw_m``, ``crashed``,
@@ -118,11 +118,8 @@ def fly(
     if online_calibration is not None:
         rig = replace(rig, online_calibration=bool(online_calibration))
     if sensor_model != "default":
-        if estimator != "msckf" or frontend != "klt":
-            raise ValueError(
-                f"sensor model {sensor_model!r} needs the msckf on klt, got {estimator} on {frontend}"
-            )
-        rig = replace(rig, msckf=(rig.msckf or MsckfParams()).with_sensor_model(sensor_model))
+        msckf, window = model_settings(estimator, frontend, sensor_model, msckf=rig.msckf, window=rig.window)
+        rig = replace(rig, msckf=msckf, window=window)
     if edit_rig is not None:
         rig = edit_rig(rig)
     if loop_closure is None:

@@ -144,7 +144,8 @@ def eval_(
         "--imu-intrinsics",
         "IMU intrinsics choice",
         ("none", "gyro", "gyro+accel"),
-        "Estimate the IMU's scale/misalignment matrices online (msckf only; MsckfParams.imu_intrinsics).",
+        "Estimate the IMU's scale/misalignment matrices online (msckf or window; MsckfParams / "
+        "WindowParams.imu_intrinsics).",
     ),
     klt_noise: str = choice_option(
         "default",
@@ -158,12 +159,13 @@ def eval_(
     sensor_model: str = choice_option(
         "default",
         "--sensor-model",
-        "MSCKF sensor model",
+        "sensor model",
         SENSOR_MODEL_CHOICES,
-        "The MSCKF's model of its sensors: default (1 px, the IMU as its file says: any camera) or render "
-        "(measured on this project's renders: the KLT render noise, the IMU's scale/misalignment estimated "
-        "online, rotation-compensated clones; MsckfParams.with_render_sensor_model; recordings with the "
-        "right calibration).",
+        "The estimator's model of its sensors: default (1 px, the IMU as its file says: any camera) or "
+        "render (measured on this project's renders: the KLT render noise, the IMU's scale/misalignment "
+        "estimated online, for the msckf also rotation-compensated clones; MsckfParams / "
+        "WindowParams.with_render_sensor_model; msckf or window on klt; recordings with the right "
+        "calibration).",
     ),
     monitor: bool = typer.Option(True, "--monitor/--no-monitor", help="Run the health monitor (default on)."),
     write_report: bool = typer.Option(
@@ -192,37 +194,17 @@ def eval_(
     check_out(out, overwrite)
     if calibrate and estimator not in ("msckf", "window"):
         fail(f"--calibrate needs --estimator msckf or window: {estimator!r} has no online calibration")
-    if imu_intrinsics != "none" and estimator != "msckf":
-        fail(f"--imu-intrinsics {imu_intrinsics} needs --estimator msckf, got {estimator!r}")
-    if klt_noise != "default" and estimator not in ("msckf", "window"):
-        fail(f"--klt-noise {klt_noise} needs --estimator msckf or window, got {estimator!r}")
-    if klt_noise != "default" and frontend != "klt":
-        fail(f"--klt-noise {klt_noise} is a model of the klt front end, got --frontend {frontend}")
-    if klt_noise == "render" and estimator == "window" and calibrate:
-        fail(
-            "--klt-noise render with --estimator window cannot --calibrate: the window's online calibration "
-            "needs white track noise (WindowParams.track_noise=False)"
+    try:
+        from viotb.vio.model_options import model_settings
+
+        msckf, window = model_settings(
+            estimator, frontend, sensor_model, klt_noise, imu_intrinsics, calibrate
         )
-    if sensor_model != "default" and (estimator != "msckf" or frontend != "klt"):
-        fail(f"--sensor-model {sensor_model} needs --estimator msckf and --frontend klt")
-    if sensor_model != "default" and (imu_intrinsics != "none" or klt_noise != "default"):
-        fail(f"--sensor-model {sensor_model} sets the KLT noise and the IMU intrinsics itself")
-    msckf = window = None
-    if sensor_model != "default":
-        from viotb.vio.msckf_params import MsckfParams
-
-        msckf = MsckfParams().with_sensor_model(sensor_model)
-    if estimator == "msckf" and (imu_intrinsics != "none" or klt_noise != "default"):
-        from dataclasses import replace
-
-        from viotb.vio.msckf_params import MsckfParams
-
-        msckf = replace(MsckfParams(), imu_intrinsics=imu_intrinsics)
-        msckf = msckf.with_render_klt_noise() if klt_noise == "render" else msckf
-    if estimator == "window" and klt_noise == "render":
-        from viotb.vio.window_params import WindowParams
-
-        window = WindowParams().with_render_klt_noise()
+    except ValueError as exc:
+        flags = (("--sensor-model", sensor_model, "default"), ("--klt-noise", klt_noise, "default"))
+        flags += (("--imu-intrinsics", imu_intrinsics, "none"),)
+        told = [f"{flag} {value}" for flag, value, default in flags if value != default]
+        fail(f"{' '.join(told + (['--calibrate'] if calibrate else []))}: {exc}")
     try:
         from viotb.envs.run.loop_glue import loop_options
 

@@ -50,10 +50,10 @@ def fly(
     sensor_model: str = choice_option(
         "default",
         "--sensor-model",
-        "MSCKF sensor model",
+        "sensor model",
         SENSOR_MODEL_CHOICES,
-        "The MSCKF's model of its sensors: default (1 px, the IMU as calibrated) or render (measured on "
-        "these renders: MsckfParams.with_render_sensor_model; msckf on klt).",
+        "The estimator's model of its sensors: default (1 px, the IMU as calibrated) or render (measured "
+        "on these renders: MsckfParams / WindowParams.with_render_sensor_model; msckf or window on klt).",
     ),
     overwrite: bool = overwrite_option(),
     quiet: bool = quiet_option(),
