@@ -13,6 +13,8 @@ ATE. Models:
 - ``msckf-sensor-render``: :meth:`MsckfParams.with_render_sensor_model` (``viotb eval --sensor-model
   render``): the above with both matrices and rotation-compensated clones.
 - ``window-render``: :meth:`WindowParams.with_render_klt_noise`.
+- ``window-sensor-render``: :meth:`WindowParams.with_render_sensor_model` (``viotb eval --estimator window
+  --sensor-model render``): the render noise and both IMU matrices online.
 
 Usage::
 
@@ -48,6 +50,7 @@ MODELS = (
     "msckf-sensor-render",
     "window",
     "window-render",
+    "window-sensor-render",
 )
 
 
@@ -56,7 +59,10 @@ def options(model: str) -> EvalOptions:
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}; allowed: {', '.join(MODELS)}")
     if model.startswith("window"):
-        window = WindowParams().with_render_klt_noise() if model == "window-render" else None
+        window = {
+            "window-render": WindowParams().with_render_klt_noise(),
+            "window-sensor-render": WindowParams().with_render_sensor_model(),
+        }.get(model)
         return EvalOptions("window", "klt", window=window)
     msckf = MsckfParams()
     if model == "msckf-sensor-render":
