@@ -233,24 +233,18 @@ class MsckfParams:
         whenever 15 % of the last one's features are gone (``min_shared_fraction`` 0.85, which fast turns
         need once rotation no longer makes clones), and the oldest clone's features used after 0.5 s
         without an update (``max_update_gap_s``: spaced clones fill the window slowly after a still start,
-        and the first update then came late and too strong: a divergence at takeoff in the pillars scene),
-        and features only where their views have parallax (:data:`RENDER_MAX_DEPTH_BASELINE_RATIO`: told
-        the render noise, a point seen over a baseline of 1/1000 of its depth is trusted far more than its
-        linearization deserves; ``head-look-around`` 5.68 -> 4.37). On 40 s KLT recordings (seeds 0-4 of
-        seven scenarios) the mean position NEES per scenario is 1.75-4.37 on all seven, where the defaults
-        give 0.36-6.63, and the ATE is 1.9-6.6x lower. For the renders with the right calibration only: a
-        10 ms time offset in the file makes it reject most features and declare divergence (the defaults
-        fly on and the health monitor names the cause; with online calibration it finds and names both
-        errors).
+        and the first update then came late and too strong: a divergence at takeoff in the pillars scene).
+        On 40 s KLT recordings (seeds 0-4 of seven scenarios) the mean position NEES per scenario is
+        1.77-2.73 on six and 5.68 on ``head-look-around``, where the defaults give 0.36-6.63, and the ATE
+        is 1.9-6.3x lower. For the renders with the right calibration only: a 10 ms time offset in the file
+        makes it reject most features and declare divergence (the defaults fly on and the health monitor
+        names the cause; with online calibration it finds and names both errors).
         """
         return replace(
             self.with_render_klt_noise(),
             imu_intrinsics="gyro+accel",
             keyframing=replace(self.keyframing, rotation_compensated=True, min_shared_fraction=0.85),
             max_update_gap_s=0.5,
-            triangulation=replace(
-                self.triangulation, max_depth_baseline_ratio=RENDER_MAX_DEPTH_BASELINE_RATIO
-            ),
         )
 
     def with_online_calibration(

@@ -65,7 +65,7 @@ def render_noise_hint(ds: EurocDataset, opts: EvalOptions) -> str:
         return ""
     return (
         "one of this project's renders, told 1 px: its measured model is --sensor-model render "
-        "(MsckfParams.with_render_sensor_model: consistent and 1.9-6.6x more accurate on the 40 s "
+        "(MsckfParams.with_render_sensor_model: consistent and 1.9-6.3x more accurate on the 40 s "
         "recordings of README 'Consistency per scenario')"
     )
 
