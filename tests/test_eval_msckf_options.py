@@ -123,6 +123,8 @@ def test_the_window_takes_the_render_sensor_model_and_the_imu_intrinsics(tmp_pat
     }
     assert out["estimated_frames"] > 0
     p = WindowParams().with_render_sensor_model()
-    assert replace(p, imu_intrinsics="none") == WindowParams().with_render_klt_noise()
+    assert replace(p, imu_intrinsics="none", outlier_threshold=WindowParams().outlier_threshold) == (
+        WindowParams().with_render_klt_noise()
+    )
     out = _result(tmp_path, "--estimator", "window", "--imu-intrinsics", "gyro")
     assert out["window_settings"]["imu_intrinsics"] == "gyro" and out["estimated_frames"] > 0

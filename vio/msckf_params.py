@@ -41,19 +41,6 @@ sigma, and 10 frames of rejected features followed); with 0.035 px and 0.0003 it
 NEES 3.4). Over all tracks and without a cut the fit is 0.11 on ``figure8``: the tail the gate removes.
 """
 
-RENDER_MAX_DEPTH_BASELINE_RATIO = 150.0
-"""Largest depth / baseline of a triangulated point (``TriangulationParams.max_depth_baseline_ratio``) when
-the estimator is told the render noise: a parallax of at least 1/150 rad (0.38 deg).
-
-A point seen over a smaller baseline has a depth the views bound only loosely (at 1/1000 rad and 0.035 px
-on a 250 px focal length, the depth's relative sigma is ~20 %), so its linearization is poor; told 1 px,
-the estimators weigh such points too little for that to matter. Measured on the 40 s ``head-look-around``
-renders (a head turning in place, 0.5 m of path in 23 s: most tracks have little parallax), seeds 0-4:
-the window's mean position NEES 1635 -> 20.9 (ATE 5.50 -> 4.80 cm; seed 0 alone: 300 -> 488, 150 -> 6.2,
-100 -> 5.8 with 2.7 cm, 50 -> 0.8 with 6.9 cm), the MSCKF's 5.68 -> 4.37 (README "Consistency per
-scenario", session 17).
-"""
-
 SENSOR_MODELS = ("default", "render")
 """Sensor models of :meth:`MsckfParams.with_sensor_model` (``viotb eval / fly --sensor-model``)."""
 

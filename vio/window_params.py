@@ -9,7 +9,6 @@ from viotb.vio.keyframing import KeyframeParams
 from viotb.vio.msckf_params import (
     RENDER_KLT_PIXEL_SIGMA_PX,
     RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
-    RENDER_MAX_DEPTH_BASELINE_RATIO,
     SENSOR_MODELS,
 )
 from viotb.vio.stereo import StereoMatchParams
@@ -219,19 +218,18 @@ class WindowParams:
 
         The MSCKF's model (:meth:`viotb.vio.msckf_params.MsckfParams.with_render_sensor_model`) where the
         window has its parts: the KLT noise of the renders (:meth:`with_render_klt_noise`, white and
-        random walk), both IMU correction matrices estimated online (``imu_intrinsics="gyro+accel"``;
-        the window's keyframes are already rotation-compensated and it has no update gap), and landmarks
-        only where their views have parallax
-        (:data:`~viotb.vio.msckf_params.RENDER_MAX_DEPTH_BASELINE_RATIO`).
-        Told the render noise alone the window is overconfident where the motion is fast, by the simulated
-        IMU's 0.2 % scale and 0.05 deg misalignment (``aggressive`` position NEES 126 on a 40 s seed; 2.8
-        recorded without those errors; 2.1 with the matrices estimated), and where it turns in place, by
-        its low-parallax landmarks (``head-look-around`` 1635: README "Consistency per scenario", session
-        17). For the renders with the right calibration only, and not with :meth:`with_online_calibration`
-        (its camera terms need white track noise).
+        random walk) and both IMU correction matrices estimated online (``imu_intrinsics="gyro+accel"``;
+        the window's keyframes are already rotation-compensated and it has no update gap); and the
+        landmarks whose views err by more than 5 sigmas (``outlier_threshold``, 0.18 px) leave the window:
+        8 sigmas, 0.28 px at this noise, kept the KLT tracks the model does not describe (the MSCKF gates
+        each feature by chi-square at 95 %). Told the render noise alone the window is overconfident where
+        the motion is fast, by the simulated IMU's 0.2 % scale and 0.05 deg misalignment (``aggressive``
+        position NEES 126 on a 40 s seed; 2.8 recorded without those errors; 2.1 with the matrices
+        estimated: README "Consistency per scenario", session 17). For the renders with the right
+        calibration only, and not with :meth:`with_online_calibration` (its camera terms need white track
+        noise).
         """
-        tri = replace(self.triangulation, max_depth_baseline_ratio=RENDER_MAX_DEPTH_BASELINE_RATIO)
-        return replace(self.with_render_klt_noise(), imu_intrinsics="gyro+accel", triangulation=tri)
+        return replace(self.with_render_klt_noise(), imu_intrinsics="gyro+accel", outlier_threshold=5.0)
 
     def with_online_calibration(
         self,
