@@ -12,7 +12,9 @@ Each test compares configurations of the same filter on the same recording, agai
 - a closed-loop hover on ``--sensor-model render`` (the whole model) against the default;
 - the Monte Carlo (slow): the whole model on 40 s recordings, seeds 0-4, of issue #13's seven scenarios,
   whose mean position NEES must lie in issue #13's band [1.5, 5] (``head-look-around``, at 5.68, is a
-  strict xfail).
+  strict xfail);
+- the window's model (:meth:`WindowParams.with_render_sensor_model`, which also estimates the IMU
+  matrices): the short run and the same Monte Carlo (``hover`` and ``head-look-around`` strict xfails).
 """
 
 from __future__ import annotations
@@ -80,9 +82,10 @@ def test_window_told_the_render_noise_is_consistent_once_it_estimates_the_imu_ma
     """The window on the same 12 s run: render noise alone NEES > 10; the whole model in [0.75, 5].
 
     The model (:meth:`WindowParams.with_render_sensor_model`) estimates both IMU correction matrices in the
-    window (:mod:`viotb.vio.window_calib`) and drops landmarks beyond 5 sigmas. Measured on seeds 0 / 1 / 2 (position NEES, ATE): the 1 px
-    default 4.0 / 4.1 / 1.1, 1.49 / 1.81 / 1.15 cm; render noise 30 / 32 / 14, 1.17 / 1.51 / 1.37 cm; the
-    model 2.4 / 3.1 / 1.9, 0.44 / 0.58 / 0.54 cm (orientation NEES 1.5 / 1.9 / 2.9, from 18 / 68 / 17).
+    window (:mod:`viotb.vio.window_calib`) and drops landmarks beyond 5 sigmas. Measured on seeds 0 / 1 /
+    2 (position NEES, ATE): the 1 px default 4.0 / 4.1 / 1.1, 1.49 / 1.81 / 1.15 cm; render noise 30 / 32
+    / 14, 1.17 / 1.51 / 1.37 cm; the model 2.4 / 3.1 / 1.9, 0.44 / 0.58 / 0.54 cm (orientation NEES 1.5 /
+    1.9 / 2.9, from 18 / 68 / 17).
     """
 
     def run(name: str, window: WindowParams | None) -> dict:
@@ -126,6 +129,41 @@ def test_render_sensor_model_nees_monte_carlo(tmp_path, scenario):
     assert not any(m["diverged"] for m in runs)
     assert 1.5 < np.mean([m["nees_pos_mean"] for m in runs]) < 5.0
     assert np.mean([m["ate_posyaw_m"] for m in runs]) < np.mean([m["ate_posyaw_m"] for m in defaults])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "scenario",
+    [
+        *(s for s in SCENARIOS if s not in ("hover", "head-look-around")),
+        pytest.param(
+            "hover", marks=pytest.mark.xfail(strict=True, reason="just above the band: 5.04 (issue #13)")
+        ),
+        pytest.param(
+            "head-look-around",
+            marks=pytest.mark.xfail(strict=True, reason="far above the band: 838, low parallax (issue #13)"),
+        ),
+    ],
+)
+def test_window_render_sensor_model_nees_monte_carlo(tmp_path, scenario):
+    """The window's model on the same Monte Carlo: mean position NEES in [1.5, 5], lower ATE than defaults.
+
+    Measured (README "Consistency per scenario", session 17), mean position NEES and mean ATE, window
+    defaults -> the model: ``figure8`` 0.86 -> 2.30, 2.42 -> 1.05 cm; ``circle`` 1.49 -> 3.11, 2.74 ->
+    1.42; ``aggressive`` 11.6 -> 3.09, 4.08 -> 0.88; ``head-fast-turns`` 0.41 -> 2.76, 1.53 -> 0.90;
+    ``head-walk`` 1.83 -> 3.29, 4.18 -> 1.72. ``hover`` 0.29 -> 5.04 (seed 1 alone 16.8) and
+    ``head-look-around`` 2.00 -> 838 (its low-parallax landmarks) are strict xfails.
+    """
+    models, defaults = [], []
+    for seed in range(5):
+        rec = tmp_path / f"rec{seed}"
+        record_scenario(scenario, rec, seed=seed, seconds=40.0)
+        opts = EvalOptions("window", "klt", window=WindowParams().with_render_sensor_model())
+        models.append(evaluate_dataset(rec, tmp_path / f"model{seed}", opts))
+        defaults.append(evaluate_dataset(rec, tmp_path / f"default{seed}", EvalOptions("window", "klt")))
+    assert not any(m["diverged"] for m in models)
+    assert np.mean([m["ate_posyaw_m"] for m in models]) < np.mean([m["ate_posyaw_m"] for m in defaults])
+    assert 1.5 < np.mean([m["nees_pos_mean"] for m in models]) < 5.0
 
 
 def test_closed_loop_hover_on_the_render_sensor_model_holds_closer_than_on_the_default():
