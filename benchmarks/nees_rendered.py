@@ -14,7 +14,7 @@ ATE. Models:
   render``): the above with both matrices and rotation-compensated clones.
 - ``window-render``: :meth:`WindowParams.with_render_klt_noise`.
 - ``window-sensor-render``: :meth:`WindowParams.with_render_sensor_model` (``viotb eval --estimator window
-  --sensor-model render``): the render noise and both IMU matrices online.
+  --sensor-model render``): the render noise, both IMU matrices online, outliers at 5 sigmas.
 
 Usage::
 

@@ -6,7 +6,8 @@ the simulated front end. ``full`` adds a fast circle, the 60 s long loop (simula
 (``moving-start-sim``: the stream entered mid-motion, so the MSCKF must initialize dynamically; its
 ``init_time_s`` is guarded too), and the
 image path: a rendered 12 s ``figure8`` recording evaluated with the KLT front end (``figure8-klt``; and with
-the sensor model measured on the renders, ``figure8-klt-render``, whose NEES guards its consistency) and a 20
+the sensor model measured on the renders, ``figure8-klt-render``, whose NEES guards its consistency, and the
+window's, ``figure8-klt-window-render``) and a 20
 s closed-loop ``fly-hover`` on rendered images (``fly-hover-klt``), and the circle with the sliding-window
 optimizer (``circle-sim-window``).
 
@@ -34,6 +35,7 @@ import numpy as np
 from viotb.envs.scenarios.streams import StreamConfig
 from viotb.envs.tools.sweep.runs import RunConfig, run_config
 from viotb.vio.msckf import MsckfParams
+from viotb.vio.window_params import WindowParams
 
 DEFAULT_BASELINE = Path(__file__).resolve().parents[2] / "benchmarks" / "regress_baseline.json"
 """The committed baseline."""
@@ -59,7 +61,7 @@ FULL_CASES = {
     "long-loop-sim": StreamConfig(motion="long-loop", seconds=60.0, landmark_count=600),
     "moving-start-sim": StreamConfig(motion="aggressive", seconds=12.0, landmark_count=600, start_at_s=4.0),
 }
-IMAGE_CASES = ("figure8-klt", "figure8-klt-render", "fly-hover-klt")
+IMAGE_CASES = ("figure8-klt", "figure8-klt-render", "figure8-klt-window-render", "fly-hover-klt")
 """Full-set cases on rendered images."""
 WINDOW_CASES = {"circle-sim-window": StreamConfig(motion="circle", seconds=10.0, landmark_count=600)}
 """Full-set cases run with the sliding-window optimizer instead of the MSCKF."""
@@ -126,17 +128,22 @@ def _stream_case(run: RunConfig, ref_ms: float) -> dict:
     return out
 
 
-def _recording_case(seed: int, ref_ms: float, params: MsckfParams | None = None) -> dict:
-    """``figure8`` rendered for 12 s, replayed by the MSCKF with the KLT front end (mode ``record-eval``).
+def _recording_case(
+    seed: int, ref_ms: float, params: MsckfParams | None = None, window: WindowParams | None = None
+) -> dict:
+    """``figure8`` rendered for 12 s, replayed with the KLT front end (mode ``record-eval``).
 
-    ``params``: the MSCKF's settings (None: the defaults), as ``msckf.*`` overrides of the run.
+    ``params``: the MSCKF's settings (None: the defaults), as ``msckf.*`` overrides of the run; ``window``:
+    replay with the window optimizer instead, its settings as ``window.*`` overrides.
     """
     overrides = _overrides(params, MsckfParams()) if params is not None else ()
+    if window is not None:
+        overrides = _overrides(window, WindowParams(), "window")
     m = run_config(
         RunConfig(
             scenario="figure8",
             mode="record-eval",
-            estimator="msckf",
+            estimator="msckf" if window is None else "window",
             frontend="klt",
             seconds=12.0,
             seed=seed,
@@ -203,6 +210,8 @@ def run_suite(
     if full and only is None:
         out["figure8-klt"] = _recording_case(seed, ref)
         out["figure8-klt-render"] = _recording_case(seed, ref, MsckfParams().with_render_sensor_model())
+        window_render = WindowParams().with_render_sensor_model()
+        out["figure8-klt-window-render"] = _recording_case(seed, ref, window=window_render)
         out["fly-hover-klt"] = _fly_case(seed, ref, frontend="klt", seconds=20.0)
         for name, cfg in WINDOW_CASES.items():
             out[name] = _stream_case(_stream_run(cfg, seed, (), estimator="window"), ref)
