@@ -77,8 +77,16 @@ from viotb.vio.window_solver import (
 from viotb.vio.window_weights import stereo_weights
 from viotb.vio.zero_velocity import ZeroVelocityDetector
 
-__all__ = ["NX", "WindowEstimator", "WindowParams", "boxminus", "imu_factor", "preintegrate", "reprojection"]
-__all__ += ["retract"]
+__all__ = [
+    "NX",
+    "WindowEstimator",
+    "WindowParams",
+    "boxminus",
+    "imu_factor",
+    "preintegrate",
+    "reprojection",
+    "retract",
+]
 
 
 class WindowEstimator:
@@ -250,12 +258,10 @@ class WindowEstimator:
     def wants_excitation(self) -> bool:
         """True while the newest keyframe's horizontal accelerometer-bias sigma is above its threshold.
 
-        See :func:`viotb.vio.lifecycle.excitation_wanted`; the threshold is
-        ``params.excitation_accel_bias_sigma_m_s2``.
+        See :func:`viotb.vio.lifecycle.excitation_wanted`; threshold ``excitation_accel_bias_sigma_m_s2``.
         """
-        if not self.keyframes:
-            return False
-        return excitation_wanted(self._cov_newest, self.params.excitation_accel_bias_sigma_m_s2)
+        sigma_m_s2 = self.params.excitation_accel_bias_sigma_m_s2
+        return bool(self.keyframes) and excitation_wanted(self._cov_newest, sigma_m_s2)
 
     def feed_truth(self, truth: StateEstimate) -> None:
         """Truth is not used by the optimizer (no-op; part of :class:`viotb.vio.types.Estimator`)."""
