@@ -32,6 +32,10 @@ class WindowParams:
         huber_threshold: Huber threshold on the whitened reprojection error norm (sigmas).
         outlier_threshold: Landmarks with any whitened reprojection error above this (sigmas) after the
             optimization are removed.
+        outlier_chi2: Also remove, after the optimization, the landmarks whose whitened cost over all
+            their views (generalized least squares under ``track_noise``) exceeds this quantile of
+            chi-square with ``2 M - 3`` degrees of freedom (:func:`viotb.vio.window_reprojection.
+            landmark_outliers`); None: the per-view rule only.
         max_iterations: Levenberg-Marquardt trial steps per keyframe (the solve's budget, counted in steps
             so the same seed gives the same estimate; a solve cut short continues from its values at the
             next keyframe). 4 steps in all moved the head-walk recording's ATE from 3.3 to 3.8 cm and 3
@@ -148,6 +152,7 @@ class WindowParams:
     pixel_sigma_px: float = 1.0
     huber_threshold: float = 3.0
     outlier_threshold: float = 8.0
+    outlier_chi2: float | None = None
     max_iterations: int = 5
     keyframe_frame_iterations: int = 5
     frame_iterations: int = 2

@@ -271,3 +271,52 @@ def _white_compiled(
     g_l += per_lm[:, 6:9, -1]
     blocks.append(WhiteBlocks(kf_i, lm_i, A))
     return 0.5 * rho, 2 * M
+
+
+def landmark_chi2(blocks: list[WhiteBlocks | TrackBlocks], n_lm: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each landmark's whitened reprojection cost over all cameras and its degrees of freedom.
+
+    White noise: ``sum_m w_m |r_m|^2`` over its observations; correlated track noise: the generalized
+    least-squares ``sum_uv Lambda_uv r_u . r_v`` (both with the Huber weights of the linearization, the
+    cost :func:`add_reprojection` adds). Degrees of freedom ``2 M - 3`` for M observations (a point in W).
+
+    Args:
+        blocks: ``LinearSystem.reprojection_blocks`` of one linearization over ``n_lm`` landmarks.
+        n_lm: Landmarks L.
+
+    Returns:
+        ``(chi2 (L,), dof (L,))``.
+    """
+    chi2, views = np.zeros(n_lm), np.zeros(n_lm)
+    for b in blocks:
+        if isinstance(b, WhiteBlocks):
+            chi2 += np.bincount(b.lm_i, b.A[:, -1, -1], minlength=n_lm)
+            views += np.bincount(b.lm_i, minlength=n_lm)
+        else:
+            r = b.Jg[:, :, :, 9]  # (L, N, 2): sqrt(w) r / sigma, zero where unseen
+            chi2 += np.einsum("lua,luv,lva->l", r, b.lam, r)
+            views += np.count_nonzero(np.diagonal(b.lam, axis1=1, axis2=2), axis=1)
+    return chi2, 2.0 * views - 3.0
+
+
+def landmark_outliers(
+    max_err: np.ndarray,
+    blocks: list[WhiteBlocks | TrackBlocks],
+    threshold: float,
+    chi2_quantile: float | None,
+) -> np.ndarray:
+    """Landmarks to drop after a solve, shape (L,) bool.
+
+    A view whitened above ``threshold`` sigmas (``max_err``), or with ``chi2_quantile`` the landmark's cost
+    :func:`landmark_chi2` above that quantile of chi-square with its degrees of freedom: the test of the
+    whole track under the noise model, as the MSCKF gates each feature (Mourikis & Roumeliotis 2007,
+    sec. IV), where a single view's error measured against the white part alone also rejects the slow drift
+    of a correlated track.
+    """
+    bad = max_err > threshold
+    if chi2_quantile is not None and len(max_err):
+        from scipy.stats import chi2 as chi2_dist
+
+        cost, dof = landmark_chi2(blocks, len(max_err))
+        bad |= cost > chi2_dist.ppf(chi2_quantile, np.maximum(dof, 1.0))
+    return bad
