@@ -124,22 +124,38 @@ _ICM42688 = ImuModelParams(
 )
 
 
+# Analog Devices ADIS16448 (EuRoC's VI-sensor IMU). Densities from EuRoC imu0/sensor.yaml; ranges,
+# LSB sizes and misalignment from the ADIS16448 datasheet (rev. D); turn-on biases sized like the
+# EuRoC V1_01 ground-truth biases (~0.02 rad/s, ~0.05 m/s^2).
+_ADIS16448 = ImuModelParams(
+    rate_hz=200.0,
+    noise=ImuNoise(1.6968e-4, 1.9393e-5, 2.0e-3, 3.0e-3),
+    gyro_turn_on_bias_sigma_rad_s=0.02,
+    accel_turn_on_bias_sigma_m_s2=0.05,
+    gyro_scale_sigma=2e-3,
+    accel_scale_sigma=2e-3,
+    misalignment_sigma_rad=0.05 * _DEG,
+    gyro_quantization_rad_s=0.04 * _DEG,
+    accel_quantization_m_s2=0.833e-3 * _G,
+    gyro_range_rad_s=1000.0 * _DEG,
+    accel_range_m_s2=18.0 * _G,
+)
+
+
 _PRESETS: dict[str, ImuModelParams] = {
-    # Analog Devices ADIS16448 (EuRoC's VI-sensor IMU). Densities from EuRoC imu0/sensor.yaml; ranges,
-    # LSB sizes and misalignment from the ADIS16448 datasheet (rev. D); turn-on biases sized like the
-    # EuRoC V1_01 ground-truth biases (~0.02 rad/s, ~0.05 m/s^2).
-    "adis16448": ImuModelParams(
-        rate_hz=200.0,
-        noise=ImuNoise(1.6968e-4, 1.9393e-5, 2.0e-3, 3.0e-3),
-        gyro_turn_on_bias_sigma_rad_s=0.02,
-        accel_turn_on_bias_sigma_m_s2=0.05,
-        gyro_scale_sigma=2e-3,
-        accel_scale_sigma=2e-3,
-        misalignment_sigma_rad=0.05 * _DEG,
-        gyro_quantization_rad_s=0.04 * _DEG,
-        accel_quantization_m_s2=0.833e-3 * _G,
-        gyro_range_rad_s=1000.0 * _DEG,
-        accel_range_m_s2=18.0 * _G,
+    "adis16448": _ADIS16448,
+    # The same densities and bias random walk with nothing else: no turn-on bias, scale, misalignment or
+    # quantization. What an estimator told only the noise densities models exactly, so a recording with it
+    # separates an estimator's own inconsistency from a sensor-model mismatch (benchmarks/nees_clean_data.py).
+    "adis16448-white": replace(
+        _ADIS16448,
+        gyro_turn_on_bias_sigma_rad_s=0.0,
+        accel_turn_on_bias_sigma_m_s2=0.0,
+        gyro_scale_sigma=0.0,
+        accel_scale_sigma=0.0,
+        misalignment_sigma_rad=0.0,
+        gyro_quantization_rad_s=0.0,
+        accel_quantization_m_s2=0.0,
     ),
     "bmi088": _BMI088,
     # The same BMI088 configured at its most sensitive ranges (+-125 deg/s, +-3 g): finer steps, but an
