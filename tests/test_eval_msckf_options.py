@@ -102,29 +102,37 @@ def test_the_window_takes_the_render_noise_model_and_the_result_names_it(tmp_pat
         "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
         "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
         "imu_intrinsics": "none",
+        "outlier_chi2": None,
     }
     assert out["msckf_settings"] is None and out["estimated_frames"] > 0
     told = WindowParams().with_render_klt_noise()
     assert told.track_noise and told.huber_threshold == WindowParams().huber_threshold  # gates in sigmas
-    default = {"pixel_sigma_px": 1.0, "track_random_walk_px2_per_px": 0.0, "imu_intrinsics": "none"}
+    default = {
+        "pixel_sigma_px": 1.0,
+        "track_random_walk_px2_per_px": 0.0,
+        "imu_intrinsics": "none",
+        "outlier_chi2": None,
+    }
     assert _result(tmp_path, "--estimator", "window")["window_settings"] == default
 
 
 def test_the_window_takes_the_render_sensor_model_and_the_imu_intrinsics(tmp_path: Path) -> None:
     """``--estimator window --sensor-model render``: ``WindowParams().with_render_sensor_model()``.
 
-    The render noise and both IMU matrices; ``--imu-intrinsics gyro`` alone sets only ``T_g``. Both named.
+    The render noise, both IMU matrices and the track test; ``--imu-intrinsics gyro`` alone sets only
+    ``T_g``. Both named.
     """
     out = _result(tmp_path, "--estimator", "window", "--sensor-model", "render")
     assert out["window_settings"] == {
         "pixel_sigma_px": RENDER_KLT_PIXEL_SIGMA_PX,
         "track_random_walk_px2_per_px": RENDER_KLT_TRACK_RANDOM_WALK_PX2_PER_PX,
         "imu_intrinsics": "gyro+accel",
+        "outlier_chi2": 0.95,
     }
     assert out["estimated_frames"] > 0
     p = WindowParams().with_render_sensor_model()
-    assert replace(p, imu_intrinsics="none", outlier_threshold=WindowParams().outlier_threshold) == (
-        WindowParams().with_render_klt_noise()
-    )
+    default = WindowParams()
+    told = replace(p, imu_intrinsics="none", outlier_threshold=default.outlier_threshold, outlier_chi2=None)
+    assert told == default.with_render_klt_noise()
     out = _result(tmp_path, "--estimator", "window", "--imu-intrinsics", "gyro")
     assert out["window_settings"]["imu_intrinsics"] == "gyro" and out["estimated_frames"] > 0

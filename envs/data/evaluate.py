@@ -155,12 +155,13 @@ def msckf_settings(params: MsckfParams | None) -> dict:
 
 
 def window_settings(params: WindowParams | None) -> dict:
-    """The window settings a result names: its pixel noise, the track walk when it models one, intrinsics."""
+    """The window settings a result names: pixel noise, track walk when modeled, intrinsics, track test."""
     p = params if params is not None else WindowParams()
     return {
         "pixel_sigma_px": p.pixel_sigma_px,
         "track_random_walk_px2_per_px": p.klt.track_random_walk_px2_per_px if p.track_noise else 0.0,
         "imu_intrinsics": p.imu_intrinsics,
+        "outlier_chi2": p.outlier_chi2,
     }
 
 
