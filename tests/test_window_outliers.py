@@ -14,6 +14,7 @@ import pytest
 from scipy.stats import chi2
 from test_window_reprojection import FOCAL_PX, SIGMA_PX, _factors, _problem, _weights
 from viotb.vio.window_factors import project
+from viotb.vio.window_params import WindowParams
 from viotb.vio.window_reprojection import landmark_chi2, landmark_outliers
 from viotb.vio.window_solver import linearize
 
@@ -72,3 +73,10 @@ def test_a_gross_error_in_one_view_fails_the_track_test(q):
     # Without the quantile only the per-view rule applies: 4 px is 4 sigmas.
     assert np.nonzero(landmark_outliers(sys.max_err, sys.reprojection_blocks, 3.5, None))[0].tolist() == [3]
     assert not landmark_outliers(sys.max_err, sys.reprojection_blocks, 4.5, None).any()
+
+
+@pytest.mark.parametrize("q", [0.0, 1.0, 1.5, -0.1])
+def test_a_quantile_outside_the_unit_interval_is_refused(q):
+    """``WindowParams.outlier_chi2`` outside (0, 1): a ValueError naming the field and the value."""
+    with pytest.raises(ValueError, match=rf"outlier_chi2 must be in \(0, 1\) or None, got {q}"):
+        WindowParams(outlier_chi2=q)

@@ -190,6 +190,11 @@ class WindowParams:
     imu_intrinsics: str = "none"
     imu_intrinsic_sigma: float = 0.005
 
+    def __post_init__(self) -> None:
+        """Reject a track-test quantile outside (0, 1) (ValueError naming the field and value)."""
+        if self.outlier_chi2 is not None and not 0.0 < self.outlier_chi2 < 1.0:
+            raise ValueError(f"WindowParams.outlier_chi2 must be in (0, 1) or None, got {self.outlier_chi2}")
+
     def with_render_klt_noise(self) -> WindowParams:
         """These settings with the KLT noise model measured on this project's renders (white and walk).
 
