@@ -119,8 +119,8 @@ def test_the_window_takes_the_render_noise_model_and_the_result_names_it(tmp_pat
 def test_the_window_takes_the_render_sensor_model_and_the_imu_intrinsics(tmp_path: Path) -> None:
     """``--estimator window --sensor-model render``: ``WindowParams().with_render_sensor_model()``.
 
-    The render noise, both IMU matrices and the track test; ``--imu-intrinsics gyro`` alone sets only
-    ``T_g``. Both named.
+    The render noise, both IMU matrices, the track test and sparser keyframes; ``--imu-intrinsics
+    gyro`` alone sets only ``T_g``. Both named.
     """
     out = _result(tmp_path, "--estimator", "window", "--sensor-model", "render")
     assert out["window_settings"] == {
@@ -133,6 +133,7 @@ def test_the_window_takes_the_render_sensor_model_and_the_imu_intrinsics(tmp_pat
     p = WindowParams().with_render_sensor_model()
     default = WindowParams()
     told = replace(p, imu_intrinsics="none", outlier_threshold=default.outlier_threshold, outlier_chi2=None)
-    assert told == default.with_render_klt_noise()
+    assert told.keyframing.every_n_frames == 10
+    assert replace(told, keyframing=default.keyframing) == default.with_render_klt_noise()
     out = _result(tmp_path, "--estimator", "window", "--imu-intrinsics", "gyro")
     assert out["window_settings"]["imu_intrinsics"] == "gyro" and out["estimated_frames"] > 0
