@@ -1,4 +1,4 @@
-"""Tests of the window's track test (`landmark_chi2`, `landmark_outliers` of vio/window_reprojection.py).
+"""Tests of the window's track test (`landmark_chi2`, `LandmarkOutlierTest` of vio/window_reprojection.py).
 
 Each landmark's whitened cost against an independent dense computation: its views' residuals from the
 projection, their covariance ``I + q min(n_u, n_v)`` (the track's pixel path, a plain loop) inverted
@@ -12,10 +12,18 @@ import dataclasses
 import numpy as np
 import pytest
 from scipy.stats import chi2
-from test_window_reprojection import FOCAL_PX, SIGMA_PX, _factors, _problem, _weights
+from test_window_reprojection import (
+    FOCAL_PX,
+    SIGMA_PX,
+    _factors,
+    _problem,
+    _weights,
+    track_covariance,
+    track_views,
+)
 from viotb.vio.window_factors import project
 from viotb.vio.window_params import WindowParams
-from viotb.vio.window_reprojection import landmark_chi2, landmark_outliers
+from viotb.vio.window_reprojection import LandmarkOutlierTest, landmark_chi2
 from viotb.vio.window_solver import linearize
 
 
@@ -24,7 +32,7 @@ def _dense_costs(xs, pts, obs, R_BC, p_BC, q: float) -> tuple[np.ndarray, np.nda
     kf_i, lm_i, xy = obs
     costs, views = np.zeros(len(pts)), np.zeros(len(pts))
     for lm in range(len(pts)):
-        ms = sorted(np.nonzero(lm_i == lm)[0], key=lambda m: kf_i[m])
+        ms = track_views(kf_i, lm_i, lm)
         R = np.stack([xs[kf_i[m]].R_WB for m in ms])
         p = np.stack([xs[kf_i[m]].p_WB for m in ms])
         r = (
@@ -32,14 +40,7 @@ def _dense_costs(xs, pts, obs, R_BC, p_BC, q: float) -> tuple[np.ndarray, np.nda
             * FOCAL_PX
             / SIGMA_PX
         ).ravel()
-        path = [0.0]
-        for a, b in zip(ms[:-1], ms[1:], strict=True):
-            path.append(path[-1] + FOCAL_PX * float(np.linalg.norm(xy[b] - xy[a])))
-        C = np.eye(2 * len(ms))
-        for iu in range(len(ms)):
-            for iv in range(len(ms)):
-                for axis in range(2):
-                    C[2 * iu + axis, 2 * iv + axis] += q * min(path[iu], path[iv])
+        C = track_covariance(xy, ms, q)
         costs[lm], views[lm] = float(r @ np.linalg.solve(C, r)), len(ms)
     return costs, views
 
@@ -66,13 +67,13 @@ def test_a_gross_error_in_one_view_fails_the_track_test(q):
     xy = xy.copy()
     xy[m] += np.array([4.0, 0.0]) / FOCAL_PX
     sys = linearize(xs, pts, _factors((kf_i, lm_i, xy)), _weights(R_BC, p_BC, q))
-    bad = landmark_outliers(sys.max_err, sys.reprojection_blocks, np.inf, 0.95)
+    bad = LandmarkOutlierTest.create(np.inf, 0.95, len(xs))(sys)
     assert np.nonzero(bad)[0].tolist() == [3]
     cost, dof = landmark_chi2(sys.reprojection_blocks, len(pts))
     assert cost[3] > chi2.ppf(0.95, dof[3])
     # Without the quantile only the per-view rule applies: 4 px is 4 sigmas.
-    assert np.nonzero(landmark_outliers(sys.max_err, sys.reprojection_blocks, 3.5, None))[0].tolist() == [3]
-    assert not landmark_outliers(sys.max_err, sys.reprojection_blocks, 4.5, None).any()
+    assert np.nonzero(LandmarkOutlierTest.create(3.5, None, len(xs))(sys))[0].tolist() == [3]
+    assert not LandmarkOutlierTest.create(4.5, None, len(xs))(sys).any()
 
 
 @pytest.mark.parametrize("q", [0.0, 1.0, 1.5, -0.1])

@@ -69,6 +69,27 @@ def _factors(obs) -> Factors:
     return Factors(imu=[], prior=None, prior_k=[], still=[], no_motion=[], obs=obs)
 
 
+def track_views(kf_i: np.ndarray, lm_i: np.ndarray, lm: int) -> list[int]:
+    """The observations of landmark ``lm`` in keyframe order."""
+    return sorted(np.nonzero(lm_i == lm)[0], key=lambda m: kf_i[m])
+
+
+def track_covariance(xy: np.ndarray, ms: list[int], q: float) -> np.ndarray:
+    """Covariance (units of sigma^2) of one track's views ``ms``, axes interleaved: ``I + q min(n_u, n_v)``.
+
+    ``n`` is the pixel path along the track since its first view (straight lines between consecutive views).
+    """
+    path = [0.0]
+    for a, b in zip(ms[:-1], ms[1:], strict=True):
+        path.append(path[-1] + FOCAL_PX * float(np.linalg.norm(xy[b] - xy[a])))
+    C = np.eye(2 * len(ms))
+    for iu in range(len(ms)):
+        for iv in range(len(ms)):
+            for axis in range(2):
+                C[2 * iu + axis, 2 * iv + axis] += q * min(path[iu], path[iv])
+    return C
+
+
 def _reference(xs, pts, obs, R_BC, p_BC, q: float):
     """Dense ``(H, g, cost)`` over ``[poses (6 N), points (3 L)]`` of the GLS reprojection cost."""
     kf_i, lm_i, xy = obs
@@ -99,14 +120,9 @@ def _reference(xs, pts, obs, R_BC, p_BC, q: float):
     # pixel path along the track since its first view (straight lines between consecutive views).
     C = np.eye(2 * M)
     for lm in range(L):
-        ms = sorted(np.nonzero(lm_i == lm)[0], key=lambda m: kf_i[m])
-        path = [0.0]
-        for a, b in zip(ms[:-1], ms[1:], strict=True):
-            path.append(path[-1] + FOCAL_PX * float(np.linalg.norm(xy[b] - xy[a])))
-        for iu, mu in enumerate(ms):
-            for iv, mv in enumerate(ms):
-                for axis in range(2):
-                    C[2 * mu + axis, 2 * mv + axis] += q * min(path[iu], path[iv])
+        ms = track_views(kf_i, lm_i, lm)
+        rows = (2 * np.array(ms)[:, None] + np.arange(2)).ravel()
+        C[np.ix_(rows, rows)] = track_covariance(xy, ms, q)
     Lam = np.linalg.inv(C)
     return J.T @ Lam @ J, J.T @ Lam @ r0, 0.5 * float(r0 @ Lam @ r0)
 

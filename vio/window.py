@@ -66,7 +66,7 @@ from viotb.vio.window_map import ImuLink, Keyframe, drop_landmark, triangulate_n
 from viotb.vio.window_marginalize import marginalize_oldest, solve_factors
 from viotb.vio.window_nis import InnovationTest, WindowMarginals, innovation_test
 from viotb.vio.window_params import WindowParams, track_noise_q
-from viotb.vio.window_reprojection import landmark_outliers
+from viotb.vio.window_reprojection import LandmarkOutlierTest
 from viotb.vio.window_solver import (
     FactorWeights,
     LinearSystem,
@@ -140,6 +140,7 @@ class WindowEstimator:
         self._last_imu: ImuSample | None = None
         self.keyframe_rule = KeyframeSelector(p.keyframing)
         self.zero_velocity = ZeroVelocityDetector(p.zero_velocity, noise, chi2_gate=16.92)
+        self._outliers = LandmarkOutlierTest.create(p.outlier_threshold, p.outlier_chi2, p.window_size)
         self._prev_tracks: Tracks | None = None
         self._weights = FactorWeights(
             noise,
@@ -442,9 +443,7 @@ class WindowEstimator:
             cams = [(obs, *self._cams[0])]
             if self.calib_right is not None:
                 cams.append((obs1, *self._cams[1]))
-            bad = landmark_outliers(
-                sys.max_err, sys.reprojection_blocks, p.outlier_threshold, p.outlier_chi2
-            ) | seen_behind(xs, pts, cams, p.triangulation.min_depth_m)
+            bad = self._outliers(sys) | seen_behind(xs, pts, cams, p.triangulation.min_depth_m)
             for j in np.nonzero(bad)[0]:
                 drop_landmark(self.keyframes, self.landmarks, lm_ids[j])
             self._n_bad, self._used = self._n_bad + int(np.sum(bad)), len(lm_ids) - int(np.sum(bad))

@@ -34,8 +34,8 @@ class WindowParams:
             optimization are removed.
         outlier_chi2: Also remove, after the optimization, the landmarks whose whitened cost over all
             their views (generalized least squares under ``track_noise``) exceeds this quantile of
-            chi-square with ``2 M - 3`` degrees of freedom (:func:`viotb.vio.window_reprojection.
-            landmark_outliers`); None: the per-view rule only.
+            chi-square with ``2 M - 3`` degrees of freedom (:class:`viotb.vio.window_reprojection.
+            LandmarkOutlierTest`); None: the per-view rule only.
         max_iterations: Levenberg-Marquardt trial steps per keyframe (the solve's budget, counted in steps
             so the same seed gives the same estimate; a solve cut short continues from its values at the
             next keyframe). 4 steps in all moved the head-walk recording's ATE from 3.3 to 3.8 cm and 3

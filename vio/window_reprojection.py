@@ -19,10 +19,11 @@ measurements only, so they are built once per solve (:func:`track_pairs`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import sparse
-from viotb.vio.update_helpers import random_walk_whitener, track_path_px
+from viotb.vio.update_helpers import Chi2Table, random_walk_whitener, track_path_px
 from viotb.vio.window_factors import NX, project, reprojection
 from viotb.vio.window_kernels import white_reprojection
 
@@ -299,24 +300,37 @@ def landmark_chi2(blocks: list[WhiteBlocks | TrackBlocks], n_lm: int) -> tuple[n
     return chi2, 2.0 * views - 3.0
 
 
-def landmark_outliers(
-    max_err: np.ndarray,
-    blocks: list[WhiteBlocks | TrackBlocks],
-    threshold: float,
-    chi2_quantile: float | None,
-) -> np.ndarray:
-    """Landmarks to drop after a solve, shape (L,) bool.
+@dataclass(frozen=True)
+class LandmarkOutlierTest:
+    """Which landmarks leave the window after a solve.
 
-    A view whitened above ``threshold`` sigmas (``max_err``), or with ``chi2_quantile`` the landmark's cost
-    :func:`landmark_chi2` above that quantile of chi-square with its degrees of freedom: the test of the
-    whole track under the noise model, as the MSCKF gates each feature (Mourikis & Roumeliotis 2007,
+    A view whitened above ``threshold`` sigmas (``LinearSystem.max_err``), or, with a ``chi2_table``, the
+    landmark's cost :func:`landmark_chi2` above the table's quantile for its degrees of freedom: the test of
+    the whole track under the noise model, as the MSCKF gates each feature (Mourikis & Roumeliotis 2007,
     sec. IV), where a single view's error measured against the white part alone also rejects the slow drift
     of a correlated track.
-    """
-    bad = max_err > threshold
-    if chi2_quantile is not None and len(max_err):
-        from scipy.stats import chi2 as chi2_dist
 
-        cost, dof = landmark_chi2(blocks, len(max_err))
-        bad |= cost > chi2_dist.ppf(chi2_quantile, np.maximum(dof, 1.0))
-    return bad
+    Attributes:
+        threshold: Largest whitened error of a single view (sigmas).
+        chi2_table: Chi-square quantiles of the track test (built once), or None (the per-view rule only).
+    """
+
+    threshold: float
+    chi2_table: Chi2Table | None = None
+
+    @classmethod
+    def create(cls, threshold: float, quantile: float | None, window_size: int) -> LandmarkOutlierTest:
+        """The test of ``WindowParams.outlier_threshold`` / ``outlier_chi2`` for ``window_size`` keyframes.
+
+        The table covers a landmark seen by both cameras of every keyframe of a full window plus the newest.
+        """
+        table = None if quantile is None else Chi2Table(4 * (window_size + 1), confidence=quantile)
+        return cls(threshold, table)
+
+    def __call__(self, sys: Any) -> np.ndarray:
+        """Landmarks of a :class:`~viotb.vio.window_solver.LinearSystem` to drop, shape (L,) bool."""
+        bad = sys.max_err > self.threshold
+        if self.chi2_table is not None and len(bad):
+            cost, dof = landmark_chi2(sys.reprojection_blocks, len(bad))
+            bad |= cost > self.chi2_table(np.maximum(dof, 1.0).astype(np.int64))
+        return bad
